@@ -1,0 +1,44 @@
+/* Stages 1 and 2: triangle boxes and the bounds of their centroids.
+ *
+ * Karras 2012, section 3: Morton codes are computed from primitive centroids
+ * normalised by the scene's centroid bounds. The triangle box (min and max of
+ * the three vertices, common.h) is cheap and exact, so it is recomputed where
+ * it is needed instead of being stored: this saves 32 bytes per triangle of
+ * device memory and a pass of writes.
+ *
+ * The reduction is two-level: each work-item reduces a contiguous chunk of
+ * triangles to one box, then one work-item reduces those partial boxes.
+ */
+#include "common.h"
+
+__kernel void centroid_bounds_partial(__global const float *vertices,
+                                      __global const uint *faces,
+                                      const int n, const int per_item,
+                                      __global float4 *partial /* 2 per work-item */) {
+    const int gid = get_global_id(0);
+    const int first = chunk_first(gid, per_item, n);
+    const int last = chunk_last(gid, per_item, n);
+    float3 cmin = (float3)(INFINITY), cmax = (float3)(-INFINITY);
+    for (int t = first; t < last; ++t) {
+        float3 lo, hi;
+        triangle_box(vertices, faces, t, &lo, &hi);
+        float3 c = box_centre(lo, hi);
+        cmin = fmin(cmin, c);
+        cmax = fmax(cmax, c);
+    }
+    partial[2 * gid] = (float4)(cmin, 0.0f);
+    partial[2 * gid + 1] = (float4)(cmax, 0.0f);
+}
+
+/* Second level: one work-item folds `count` partial boxes into out[0], out[1]. */
+__kernel void reduce_boxes(__global const float4 *partial, const int count,
+                           __global float4 *out) {
+    if (get_global_id(0) != 0) return;
+    float4 lo = (float4)(INFINITY), hi = (float4)(-INFINITY);
+    for (int i = 0; i < count; ++i) {
+        lo = fmin(lo, partial[2 * i]);
+        hi = fmax(hi, partial[2 * i + 1]);
+    }
+    out[0] = lo;
+    out[1] = hi;
+}

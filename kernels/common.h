@@ -1,0 +1,48 @@
+/* Shared definitions of the lbvh kernels: the node layout and the triangle box.
+ *
+ * Node layout (docs/layout.md): a node is 32 bytes, two float4.
+ *   node[2*i]   = (lower.x, lower.y, lower.z, as_float(a))
+ *   node[2*i+1] = (upper.x, upper.y, upper.z, as_float(b))
+ *   internal node: a = left child, b = right child (both >= 0)
+ *   leaf:          a = first primitive (index into prim_order), b = -count (< 0)
+ */
+#ifndef LBVH_COMMON_H
+#define LBVH_COMMON_H
+
+/* Every kernel must give the same float results as its numpy twin: no fused
+ * multiply-add contraction behind our back. */
+#pragma OPENCL FP_CONTRACT OFF
+
+inline int node_is_leaf(int b) { return b < 0; }
+
+/* The chunk [first, last) of `count` items that work-item `gid` loops over;
+ * one item per work-item on a GPU, a long contiguous run on a CPU. */
+inline int chunk_first(int gid, int per_item, int count) {
+    long f = (long)gid * per_item;
+    return f < count ? (int)f : count;
+}
+inline int chunk_last(int gid, int per_item, int count) {
+    long l = ((long)gid + 1) * per_item;
+    return l < count ? (int)l : count;
+}
+
+inline float3 load_vertex(__global const float *vertices, uint v) {
+    return vload3(v, vertices);
+}
+
+/* Axis-aligned box of triangle t: min and max of its three vertices (exact). */
+inline void triangle_box(__global const float *vertices, __global const uint *faces,
+                         int t, float3 *lo, float3 *hi) {
+    uint3 f = vload3(t, faces);
+    float3 a = load_vertex(vertices, f.x);
+    float3 b = load_vertex(vertices, f.y);
+    float3 c = load_vertex(vertices, f.z);
+    *lo = fmin(fmin(a, b), c);
+    *hi = fmax(fmax(a, b), c);
+}
+
+/* The point a triangle is sorted by: the centre of its box. */
+/* Halves first so that boxes near the float32 limit do not overflow. */
+inline float3 box_centre(float3 lo, float3 hi) { return lo * 0.5f + hi * 0.5f; }
+
+#endif

@@ -1,0 +1,73 @@
+/* Stage 6: bottom-up refit of the node boxes (Karras 2012, section 4,
+ * "Bounding box calculation"; Apetrei 2014 does the same walk).
+ *
+ * One walk per leaf: the leaf's box is the box of its triangles; then it climbs
+ * towards the root. At each parent an atomic counter tells whether the sibling
+ * has already arrived: the first arrival stops, the second (which then knows
+ * that both children's boxes are written) computes the parent's box and goes
+ * on. min and max are exact, so the result does not depend on which walk
+ * arrives second: it is bit-identical to a serial refit.
+ *
+ * Memory ordering: the box is stored, then a global fence, then the atomic
+ * increment (release); the walk that wins the counter fences again before it
+ * reads the sibling's box through a volatile pointer (acquire), so no cached
+ * or reordered value is seen, on PoCL or on a GPU. OpenCL 1.2 atomics alone
+ * do not order plain stores.
+ *
+ * A work-item walks `per_item` consecutive leaves (one on a GPU). Leaves are
+ * leaf_nodes[k] when use_leaf_list, else leaf_first + k (Karras numbering).
+ */
+#include "common.h"
+
+inline void store_box(__global float *node_floats, int node, float3 lo, float3 hi) {
+    vstore3(lo, 0, node_floats + 8 * node);
+    vstore3(hi, 0, node_floats + 8 * node + 4);
+}
+
+inline void load_box_volatile(volatile __global float *node_floats, int node,
+                              float3 *lo, float3 *hi) {
+    volatile __global float *p = node_floats + 8 * node;
+    *lo = (float3)(p[0], p[1], p[2]);
+    *hi = (float3)(p[4], p[5], p[6]);
+}
+
+__kernel void refit(__global const float *vertices, __global const uint *faces,
+                    __global const int *prim_order, __global float4 *nodes,
+                    __global const int *parent, __global int *arrivals,
+                    __global const int *leaf_nodes, const int use_leaf_list,
+                    const int leaf_first, const int num_leaves, const int per_item) {
+    const int gid = get_global_id(0);
+    const int first = chunk_first(gid, per_item, num_leaves);
+    const int last = chunk_last(gid, per_item, num_leaves);
+    __global float *node_floats = (__global float *)nodes;
+    __global const int *node_words = (__global const int *)nodes;
+    for (int k = first; k < last; ++k) {
+        int node = use_leaf_list ? leaf_nodes[k] : leaf_first + k;
+        const int slot = node_words[8 * node + 3];
+        const int count = -node_words[8 * node + 7];
+        float3 lo, hi;
+        triangle_box(vertices, faces, prim_order[slot], &lo, &hi);
+        for (int s = 1; s < count; ++s) {
+            float3 tlo, thi;
+            triangle_box(vertices, faces, prim_order[slot + s], &tlo, &thi);
+            lo = fmin(lo, tlo);
+            hi = fmax(hi, thi);
+        }
+        store_box(node_floats, node, lo, hi);
+        for (;;) {
+            const int p = parent[node];
+            if (p < 0) break;
+            mem_fence(CLK_GLOBAL_MEM_FENCE);
+            if (atomic_inc(&arrivals[p]) == 0) break;  /* sibling not done yet */
+            mem_fence(CLK_GLOBAL_MEM_FENCE);
+            const int left = node_words[8 * p + 3];
+            const int sibling = left == node ? node_words[8 * p + 7] : left;
+            float3 slo, shi;
+            load_box_volatile(node_floats, sibling, &slo, &shi);
+            lo = fmin(lo, slo);
+            hi = fmax(hi, shi);
+            store_box(node_floats, p, lo, hi);
+            node = p;
+        }
+    }
+}

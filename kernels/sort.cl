@@ -1,0 +1,91 @@
+/* Stage 4: stable LSD radix sort of (key, value) pairs.
+ *
+ * One pass per RADIX_BITS-bit digit, least significant first (Knuth, TAOCP
+ * vol. 3, 5.2.5; the counting/scan/scatter split of Merrill & Grimshaw 2011).
+ * The keys are cut into G contiguous chunks, one per work-item:
+ *   1. digit_histogram: each chunk counts its digits -> counts[d * G + g]
+ *   2. scan_counts:     one work-item per digit d scans counts[d * G + 0..G)
+ *                       (exclusive) and writes the digit's total
+ *   3. scatter:         each chunk walks its keys in order and writes each to
+ *                       base(d) + counts[d * G + g] + rank within the chunk;
+ *                       walking in order keeps the sort stable.
+ * Large contiguous chunks suit a CPU device (PoCL); on a GPU the same kernels
+ * run with many small chunks. Passes whose digit is the same in every key are
+ * skipped by the host, which reads the AND and OR of all keys (key_bits).
+ *
+ * KEY_BITS (define): 32 or 64. RADIX_BITS (define): digit width, e.g. 8.
+ */
+#include "common.h"
+
+#if KEY_BITS == 64
+typedef ulong key_t;
+#else
+typedef uint key_t;
+#endif
+#define RADIX (1 << RADIX_BITS)
+#define DIGIT_MASK (RADIX - 1)
+
+inline uint digit_of(key_t key, int shift) { return (uint)(key >> shift) & DIGIT_MASK; }
+
+/* AND and OR of the keys of each chunk: bits where AND != OR vary. */
+__kernel void key_bits(__global const key_t *keys, const int n, const int per_item,
+                       __global key_t *and_out, __global key_t *or_out) {
+    const int gid = get_global_id(0);
+    const int first = chunk_first(gid, per_item, n);
+    const int last = chunk_last(gid, per_item, n);
+    key_t a = ~(key_t)0, o = 0;
+    for (int i = first; i < last; ++i) {
+        a &= keys[i];
+        o |= keys[i];
+    }
+    and_out[gid] = a;
+    or_out[gid] = o;
+}
+
+__kernel void digit_histogram(__global const key_t *keys, const int n, const int per_item,
+                              const int shift, const int num_chunks, __global uint *counts) {
+    const int gid = get_global_id(0);
+    if (gid >= num_chunks) return;
+    const int first = chunk_first(gid, per_item, n);
+    const int last = chunk_last(gid, per_item, n);
+    uint hist[RADIX];
+    for (int d = 0; d < RADIX; ++d) hist[d] = 0;
+    for (int i = first; i < last; ++i) hist[digit_of(keys[i], shift)]++;
+    for (int d = 0; d < RADIX; ++d) counts[d * num_chunks + gid] = hist[d];
+}
+
+__kernel void scan_counts(__global uint *counts, const int num_chunks,
+                          __global uint *digit_totals) {
+    const int d = get_global_id(0);
+    if (d >= RADIX) return;
+    __global uint *row = counts + d * num_chunks;
+    uint sum = 0;
+    for (int g = 0; g < num_chunks; ++g) {
+        uint c = row[g];
+        row[g] = sum;
+        sum += c;
+    }
+    digit_totals[d] = sum;
+}
+
+__kernel void scatter(__global const key_t *keys_in, __global const uint *values_in,
+                      __global key_t *keys_out, __global uint *values_out,
+                      const int n, const int per_item, const int shift, const int num_chunks,
+                      __global const uint *counts, __global const uint *digit_totals) {
+    const int gid = get_global_id(0);
+    if (gid >= num_chunks) return;
+    const int first = chunk_first(gid, per_item, n);
+    const int last = chunk_last(gid, per_item, n);
+    uint offset[RADIX];
+    uint base = 0;
+    for (int d = 0; d < RADIX; ++d) {
+        offset[d] = base + counts[d * num_chunks + gid];
+        base += digit_totals[d];
+    }
+    for (int i = first; i < last; ++i) {
+        key_t k = keys_in[i];
+        uint pos = offset[digit_of(k, shift)]++;
+        keys_out[pos] = k;
+        values_out[pos] = values_in[i];
+    }
+}

@@ -1,0 +1,122 @@
+"""The device LBVH build: the six stages in order, data kept on the device throughout.
+
+    bounds -> morton -> sort -> emit -> refit
+
+The host reads back only scalars that decide which kernels run next: the
+varying key bits (which sort passes to skip) and, with ``key_bits="auto"``,
+the number of duplicate 30-bit codes.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import pyopencl as cl
+
+from . import device as dev
+from .bounds import centroid_bounds
+from .bvh import BVH
+from .emit import emit_hierarchy
+from .geometry import as_mesh
+from .morton import AUTO_DUPLICATE_FRACTION, choose_key_bits, count_duplicates, morton_codes
+from .refit import refit_boxes
+from .report import PHASES, BuildReport
+from .sort import radix_sort
+
+KEY_CHOICES = {"auto": None, 30: 32, 63: 64, "30": 32, "63": 64}
+
+
+def _key_bits_of(key_bits: Any) -> int | None:
+    try:
+        return KEY_CHOICES[key_bits]
+    except (KeyError, TypeError):
+        raise ValueError(f"key_bits: {key_bits!r}; expected 30, 63 or 'auto'") from None
+
+
+def build(vertices: Any, faces: Any = None, *, key_bits: int | str = "auto",
+          device: Any = None, auto_duplicate_fraction: float = AUTO_DUPLICATE_FRACTION) -> BVH:
+    """Build an LBVH over a triangle mesh on the OpenCL device.
+
+    Args:
+        vertices: ``(V, 3)`` float coordinates, or a ``trimesh.Trimesh`` (then no ``faces``).
+        faces: ``(F, 3)`` integer vertex indices.
+        key_bits: ``30`` (``uint32`` keys), ``63`` (``uint64`` keys) or ``"auto"``:
+            30 bits unless more than ``auto_duplicate_fraction`` of the 30-bit codes
+            are duplicates.
+        device: a device name (see :mod:`lbvh.device`), a ``pyopencl.Device``, or
+            ``None`` for ``$LBVH_DEVICE`` / PoCL's CPU device.
+
+    Returns:
+        :class:`lbvh.BVH` whose buffers stay on the device. ``bvh.report()``
+        gives the phase timings and tree statistics.
+
+    Raises:
+        ValueError: bad mesh (NaN/inf, out-of-range indices, non-triangles, empty,
+            wrong shape or dtype) or bad option; nothing is built.
+    """
+    wanted = _key_bits_of(key_bits)
+    v, f = as_mesh(vertices, faces)
+    ctx = dev.get_context(device)
+    t0 = time.perf_counter()
+    vbuf, fbuf = dev.to_device(ctx, v), dev.to_device(ctx, f)
+    ctx.queue.finish()
+    upload = time.perf_counter() - t0
+    bvh = build_on_device(ctx, v, f, vbuf, fbuf, wanted, auto_duplicate_fraction)
+    bvh.build_report.upload_seconds = upload
+    return bvh
+
+
+def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl.Buffer,
+                    key_bits: int | None, auto_duplicate_fraction: float = AUTO_DUPLICATE_FRACTION
+                    ) -> BVH:
+    """Build from a mesh already on the device (host copies kept for validation and views)."""
+    n = len(faces)
+    mem = dev.MemoryTracker(ctx)
+    events: dict[str, list] = {phase: [] for phase in PHASES}
+    t0 = time.perf_counter()
+
+    box, evs = centroid_bounds(ctx, mem, vbuf, fbuf, n)
+    events["bounds"] += evs
+
+    bits = key_bits or 32
+    keys, values, evs = morton_codes(ctx, mem, vbuf, fbuf, box, n, bits)
+    events["morton"] += evs
+    result = radix_sort(ctx, mem, keys, values, n, bits)
+    events["sort"] += result.events
+    passes = result.passes
+    duplicates, evs = count_duplicates(ctx, mem, result.keys, n, bits)
+    events["morton"] += evs
+    choice = f"fixed: {'63' if bits == 64 else '30'} bits asked for"
+    if key_bits is None:
+        bits, choice = choose_key_bits(duplicates, n, auto_duplicate_fraction)
+        if bits == 64:
+            mem.free(result.keys, result.values)
+            keys, values, evs = morton_codes(ctx, mem, vbuf, fbuf, box, n, 64)
+            events["morton"] += evs
+            result = radix_sort(ctx, mem, keys, values, n, 64)
+            events["sort"] += result.events
+            passes += result.passes
+            duplicates, evs = count_duplicates(ctx, mem, result.keys, n, 64)
+            events["morton"] += evs
+    mem.free(box)
+
+    nodes, parent, evs = emit_hierarchy(ctx, mem, result.keys, n, bits)
+    events["emit"] += evs
+    mem.free(result.keys)
+    prim_order = result.values
+
+    arrivals = mem.alloc(4 * (2 * n - 1))
+    events["refit"] += refit_boxes(ctx, vbuf, fbuf, prim_order, nodes, parent, n, 2 * n - 1,
+                                   arrivals=arrivals)
+    ctx.queue.finish()
+    wall = time.perf_counter() - t0
+    mem.free(arrivals)
+
+    phase_seconds = {phase: dev.event_seconds(evs) for phase, evs in events.items()}
+    report = BuildReport(device=ctx.name, builder="lbvh", num_triangles=n, key_bits=bits,
+                         key_choice=choice, duplicate_codes=duplicates,
+                         phase_seconds=phase_seconds, device_seconds=sum(phase_seconds.values()),
+                         wall_seconds=wall, sort_passes=passes,
+                         peak_device_bytes=mem.peak - 0, input_bytes=vertices.nbytes + faces.nbytes)
+    return BVH(ctx, vertices, faces, vbuf, fbuf, nodes, parent, prim_order, 2 * n - 1, 0,
+               "lbvh", report)

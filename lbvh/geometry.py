@@ -1,0 +1,93 @@
+"""Checking and converting the caller's mesh before anything touches the device.
+
+Every problem raises a :class:`ValueError` that names it and where it is (the
+first bad vertex or face); nothing is allocated on the device before the mesh
+has passed.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def _first_row(mask: np.ndarray) -> int:
+    return int(np.flatnonzero(mask.reshape(len(mask), -1).any(axis=1))[0])
+
+
+def as_vertices(vertices: Any) -> np.ndarray:
+    """Return ``float32 (V, 3)`` C-contiguous vertices, or raise ``ValueError``."""
+    try:
+        arr = np.asarray(vertices)
+    except Exception as exc:  # ragged lists and the like
+        raise ValueError(f"vertices: cannot be read as an array ({exc})") from None
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating)
+                                   or np.issubdtype(arr.dtype, np.integer)):
+        raise ValueError(f"vertices: dtype {arr.dtype} is not a real number type "
+                         "(expected float32, float64 or an integer type)")
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"vertices: shape {arr.shape}, expected (V, 3)")
+    if len(arr) == 0:
+        raise ValueError("vertices: the mesh has no vertices")
+    finite = np.isfinite(arr) if np.issubdtype(arr.dtype, np.floating) else np.ones(arr.shape, bool)
+    if not finite.all():
+        i = _first_row(~finite)
+        raise ValueError(f"vertices: vertex {i} has a NaN or infinite coordinate {arr[i].tolist()}")
+    if arr.dtype != np.float32:
+        big = np.abs(arr.astype(np.float64)) > _FLOAT32_MAX
+        if big.any():
+            i = _first_row(big)
+            raise ValueError(f"vertices: vertex {i} {arr[i].tolist()} overflows float32")
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def as_faces(faces: Any, num_vertices: int) -> np.ndarray:
+    """Return ``uint32 (F, 3)`` C-contiguous faces, or raise ``ValueError``."""
+    try:
+        arr = np.asarray(faces)
+    except Exception as exc:
+        raise ValueError(f"faces: cannot be read as an array ({exc})") from None
+    if arr.dtype == object:
+        raise ValueError("faces: ragged or mixed-type faces; every face must be a triangle "
+                         "of 3 vertex indices (polygons must be triangulated first)")
+    if arr.ndim == 2 and arr.shape[1] != 3 and len(arr):
+        raise ValueError(f"faces: shape {arr.shape}: faces have {arr.shape[1]} vertices, "
+                         "only triangles (3 indices per face) are supported")
+    if arr.ndim != 2:
+        if arr.size == 0:
+            raise ValueError("faces: the mesh has no triangles")
+        raise ValueError(f"faces: shape {arr.shape}, expected (F, 3)")
+    if len(arr) == 0:
+        raise ValueError("faces: the mesh has no triangles")
+    if np.issubdtype(arr.dtype, np.floating):
+        raise ValueError(f"faces: dtype {arr.dtype}: vertex indices must be integers")
+    if not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"faces: dtype {arr.dtype}: vertex indices must be integers")
+    wide = arr.astype(np.int64, copy=False)
+    negative = wide < 0
+    if negative.any():
+        i = _first_row(negative)
+        raise ValueError(f"faces: face {i} {arr[i].tolist()} has a negative vertex index")
+    outside = wide >= num_vertices
+    if outside.any():
+        i = _first_row(outside)
+        raise ValueError(f"faces: face {i} {arr[i].tolist()} indexes a vertex outside "
+                         f"[0, {num_vertices})")
+    if len(arr) >= 2**31 - 1:
+        raise ValueError(f"faces: {len(arr)} triangles; at most 2**31 - 2 are supported")
+    return np.ascontiguousarray(wide, dtype=np.uint32)
+
+
+def as_mesh(vertices: Any, faces: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """Accept ``(vertices, faces)`` arrays or a ``trimesh.Trimesh``; validate both."""
+    if faces is None:
+        if hasattr(vertices, "vertices") and hasattr(vertices, "faces"):
+            mesh = vertices
+            vertices, faces = mesh.vertices, mesh.faces
+        else:
+            raise ValueError("faces: missing (pass vertices and faces, or a trimesh.Trimesh)")
+    v = as_vertices(vertices)
+    f = as_faces(faces, len(v))
+    return v, f

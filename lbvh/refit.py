@@ -1,0 +1,70 @@
+"""Stage 6: bottom-up refit of the boxes on the device (kernels/refit.cl).
+
+Used by the build and by :meth:`lbvh.BVH.refit` after vertices moved. Works on
+any tree in the project's layout: Karras trees have their leaves in one block,
+other builders pass the list of their leaf nodes.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl as cl
+
+from .device import Context
+from .layout import children_of, is_leaf, node_depths, prim_range_of
+
+KERNEL_FILE = "refit.cl"
+
+
+def refit_boxes(ctx: Context, vertices: cl.Buffer, faces: cl.Buffer, prim_order: cl.Buffer,
+                nodes: cl.Buffer, parent: cl.Buffer, num_prims: int, num_nodes: int,
+                leaf_nodes: cl.Buffer | None = None, num_leaves: int | None = None,
+                arrivals: cl.Buffer | None = None) -> list[cl.Event]:
+    """Recompute every node box in place. Without ``leaf_nodes`` the leaves are
+    nodes ``num_prims - 1 ..`` (Karras numbering); ``arrivals`` is scratch of
+    ``4 * num_nodes`` bytes (allocated here when not given)."""
+    if arrivals is None:
+        arrivals = cl.Buffer(ctx.ctx, cl.mem_flags.READ_WRITE, 4 * num_nodes)
+    if num_leaves is None:
+        num_leaves = num_prims if leaf_nodes is None else None
+    if leaf_nodes is not None and num_leaves is None:
+        num_leaves = leaf_nodes.size // 4
+    fill = cl.enqueue_fill_buffer(ctx.queue, arrivals, np.int32(0), 0, 4 * num_nodes)
+    launch = ctx.launch(num_leaves, min_per_item=256)
+    use_list = leaf_nodes is not None
+    leaf_arg = leaf_nodes if use_list else arrivals  # unused by the kernel in that case
+    ev = ctx.kernel(KERNEL_FILE, "refit")(
+        ctx.queue, (launch.global_size,), launch.local, vertices, faces, prim_order, nodes, parent,
+        arrivals, leaf_arg, np.int32(use_list), np.int32(num_prims - 1), np.int32(num_leaves),
+        np.int32(launch.per_item))
+    return [fill, ev]
+
+
+def refit_numpy(nodes: np.ndarray, parent: np.ndarray, root: int, prim_order: np.ndarray,
+                vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Serial twin: boxes of every node over the same topology, deepest level first.
+
+    Returns ``lower, upper`` ``float32 (num_nodes, 3)``. min/max are exact, so
+    the device refit must match this bit for bit.
+    """
+    tri = vertices[faces]
+    tlo = np.minimum(np.minimum(tri[:, 0], tri[:, 1]), tri[:, 2])[prim_order]
+    thi = np.maximum(np.maximum(tri[:, 0], tri[:, 1]), tri[:, 2])[prim_order]
+    num_nodes = len(nodes)
+    lower = np.zeros((num_nodes, 3), np.float32)
+    upper = np.zeros((num_nodes, 3), np.float32)
+    leaf = is_leaf(nodes)
+    ranges = prim_range_of(nodes)
+    leaves = np.flatnonzero(leaf)
+    by_first = leaves[np.argsort(ranges[leaves, 0], kind="stable")]
+    starts = ranges[by_first, 0]
+    lower[by_first] = np.minimum.reduceat(tlo, starts, axis=0)
+    upper[by_first] = np.maximum.reduceat(thi, starts, axis=0)
+    children = children_of(nodes)
+    depth = node_depths(parent, root)
+    internal = np.flatnonzero(~leaf)
+    for level in range(int(depth.max()), -1, -1):
+        at = internal[depth[internal] == level]
+        left, right = children[at, 0], children[at, 1]
+        lower[at] = np.minimum(lower[left], lower[right])
+        upper[at] = np.maximum(upper[left], upper[right])
+    return lower, upper

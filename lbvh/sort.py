@@ -1,0 +1,97 @@
+"""Stage 4: stable LSD radix sort of (key, value) pairs on the device (kernels/sort.cl).
+
+Usable on its own: :func:`radix_sort` sorts ``uint32`` or ``uint64`` keys with
+``uint32`` values already on the device, skipping every digit pass whose bits
+are the same in all keys.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+
+from .device import Context, MemoryTracker
+
+KERNEL_FILE = "sort.cl"
+RADIX_BITS = 8
+RADIX = 1 << RADIX_BITS
+
+
+@dataclass
+class SortResult:
+    keys: cl.Buffer
+    values: cl.Buffer
+    passes: int
+    events: list
+
+
+def varying_bits(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, n: int, key_bits: int
+                 ) -> tuple[int, list[cl.Event]]:
+    """Mask of the key bits that are not the same in every key (read back: it picks the passes)."""
+    dtype = np.uint64 if key_bits == 64 else np.uint32
+    launch = ctx.launch(n, gpu_per_item=-(-n // 4096))
+    and_buf = mem.alloc(launch.global_size * np.dtype(dtype).itemsize)
+    or_buf = mem.alloc(launch.global_size * np.dtype(dtype).itemsize)
+    ev = ctx.kernel(KERNEL_FILE, "key_bits", _defines(key_bits))(
+        ctx.queue, (launch.global_size,), launch.local, keys, np.int32(n),
+        np.int32(launch.per_item), and_buf, or_buf)
+    ands = np.empty(launch.global_size, dtype)
+    ors = np.empty(launch.global_size, dtype)
+    cl.enqueue_copy(ctx.queue, ands, and_buf, wait_for=[ev])
+    cl.enqueue_copy(ctx.queue, ors, or_buf, is_blocking=True)
+    mem.free(and_buf, or_buf)
+    return int(np.bitwise_and.reduce(ands)) ^ int(np.bitwise_or.reduce(ors)), [ev]
+
+
+def _defines(key_bits: int) -> dict[str, int]:
+    return {"KEY_BITS": key_bits, "RADIX_BITS": RADIX_BITS}
+
+
+def digit_shifts(mask: int, key_bits: int) -> list[int]:
+    """Shifts of the digit passes that must run: those whose digit bits vary."""
+    return [s for s in range(0, key_bits, RADIX_BITS) if (mask >> s) & (RADIX - 1)]
+
+
+def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buffer, n: int,
+               key_bits: int, free_inputs: bool = True) -> SortResult:
+    """Sort pairs stably by key. Returns the buffers holding the result (inputs or new ones).
+
+    With ``free_inputs`` the buffers not returned are released as soon as the
+    sort no longer needs them.
+    """
+    mask, events = varying_bits(ctx, mem, keys, n, key_bits)
+    shifts = digit_shifts(mask, key_bits)
+    if not shifts or n < 2:
+        return SortResult(keys, values, 0, events)
+    itemsize = 8 if key_bits == 64 else 4
+    launch = ctx.launch(n, min_per_item=4096, gpu_per_item=max(1, -(-n // 65536)))
+    chunks = launch.global_size
+    counts = mem.alloc(4 * RADIX * chunks)
+    totals = mem.alloc(4 * RADIX)
+    keys_alt = mem.alloc(n * itemsize)
+    values_alt = mem.alloc(n * 4)
+    defines = _defines(key_bits)
+    hist_k = ctx.kernel(KERNEL_FILE, "digit_histogram", defines)
+    scan_k = ctx.kernel(KERNEL_FILE, "scan_counts", defines)
+    scatter_k = ctx.kernel(KERNEL_FILE, "scatter", defines)
+    src, dst = (keys, values), (keys_alt, values_alt)
+    scan_local = None if ctx.is_cpu else (64,)
+    for shift in shifts:
+        events.append(hist_k(ctx.queue, (chunks,), launch.local, src[0], np.int32(n),
+                             np.int32(launch.per_item), np.int32(shift), np.int32(chunks), counts))
+        events.append(scan_k(ctx.queue, (RADIX,), scan_local, counts, np.int32(chunks), totals))
+        events.append(scatter_k(ctx.queue, (chunks,), launch.local, src[0], src[1], dst[0], dst[1],
+                                np.int32(n), np.int32(launch.per_item), np.int32(shift),
+                                np.int32(chunks), counts, totals))
+        src, dst = dst, src
+    mem.free(counts, totals)
+    if free_inputs:
+        mem.free(*dst)
+    return SortResult(src[0], src[1], len(shifts), events)
+
+
+def radix_sort_numpy(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Numpy twin: a stable sort of the pairs by key."""
+    order = np.argsort(keys, kind="stable")
+    return keys[order], values[order]
