@@ -33,13 +33,19 @@ def _key_bits_of(key_bits: Any) -> int | None:
         raise ValueError(f"key_bits: {key_bits!r}; expected 30, 63 or 'auto'") from None
 
 
-def build(vertices: Any, faces: Any = None, *, key_bits: int | str = "auto",
-          device: Any = None, auto_duplicate_fraction: float = AUTO_DUPLICATE_FRACTION) -> BVH:
-    """Build an LBVH over a triangle mesh on the OpenCL device.
+BUILDERS = ("lbvh", "sah")
+
+
+def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh",
+          key_bits: int | str = "auto", device: Any = None,
+          auto_duplicate_fraction: float = AUTO_DUPLICATE_FRACTION, **options: Any) -> BVH:
+    """Build a BVH over a triangle mesh: the device LBVH, or the serial SAH reference.
 
     Args:
         vertices: ``(V, 3)`` float coordinates, or a ``trimesh.Trimesh`` (then no ``faces``).
         faces: ``(F, 3)`` integer vertex indices.
+        builder: ``"lbvh"`` (device, Karras 2012) or ``"sah"`` (serial full-sweep SAH on
+            the host, the reference; ``options`` go to :func:`lbvh.sah.build_sah`).
         key_bits: ``30`` (``uint32`` keys), ``63`` (``uint64`` keys) or ``"auto"``:
             30 bits unless more than ``auto_duplicate_fraction`` of the 30-bit codes
             are duplicates.
@@ -54,8 +60,15 @@ def build(vertices: Any, faces: Any = None, *, key_bits: int | str = "auto",
         ValueError: bad mesh (NaN/inf, out-of-range indices, non-triangles, empty,
             wrong shape or dtype) or bad option; nothing is built.
     """
+    if builder not in BUILDERS:
+        raise ValueError(f"builder: {builder!r}; expected one of {', '.join(BUILDERS)}")
     wanted = _key_bits_of(key_bits)
     v, f = as_mesh(vertices, faces)
+    if builder == "sah":
+        from .sah import build_sah
+        return build_sah(v, f, device=device, **options)
+    if options:
+        raise ValueError(f"unknown option(s) for the lbvh builder: {', '.join(sorted(options))}")
     ctx = dev.get_context(device)
     t0 = time.perf_counter()
     vbuf, fbuf = dev.to_device(ctx, v), dev.to_device(ctx, f)

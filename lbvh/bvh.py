@@ -158,6 +158,19 @@ class BVH:
             self._leaf_nodes_buf = dev.to_device(self.ctx, self._leaf_nodes)
         return self._leaf_nodes_buf
 
+    # -- ray queries (lbvh/traverse.py, kernels/traverse.cl) -------------------
+    def intersect(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf,
+                  **options: Any):
+        """Closest hit of each ray; see :func:`lbvh.traverse.intersect`."""
+        from .traverse import intersect
+        return intersect(self, origins, directions, tmin, tmax, **options)
+
+    def occluded(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf,
+                 **options: Any) -> np.ndarray:
+        """Whether each ray hits anything in [tmin, tmax]; see :func:`lbvh.traverse.occluded`."""
+        from .traverse import occluded
+        return occluded(self, origins, directions, tmin, tmax, **options)
+
     # -- persistence ------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:
         """Write the tree and its mesh to a ``.npz`` file readable with plain numpy."""
