@@ -47,8 +47,9 @@ def as_faces(faces: Any, num_vertices: int) -> np.ndarray:
     """Return ``uint32 (F, 3)`` C-contiguous faces, or raise ``ValueError``."""
     try:
         arr = np.asarray(faces)
-    except Exception as exc:
-        raise ValueError(f"faces: cannot be read as an array ({exc})") from None
+    except ValueError:
+        raise ValueError("faces: ragged faces (rows of different lengths); every face must be "
+                         "a triangle of 3 vertex indices (triangulate polygons first)") from None
     if arr.dtype == object:
         raise ValueError("faces: ragged or mixed-type faces; every face must be a triangle "
                          "of 3 vertex indices (polygons must be triangulated first)")

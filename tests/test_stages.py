@@ -1,0 +1,193 @@
+"""Each pipeline kernel against its numpy or pure Python twin.
+
+Exact comparisons throughout: bounds and refit are min/max of floats, the Morton
+quantisation uses the same float32 operations (correctly rounded division on
+PoCL), and sorting, emission and duplicate counting are integer work.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl as cl
+import pytest
+
+from conftest import random_soup, shared_mesh, shipped_mesh
+from lbvh import device as dev
+from lbvh.bounds import centroid_bounds, centroid_bounds_numpy, triangle_centres_numpy
+from lbvh.emit import emit_hierarchy, emit_hierarchy_python
+from lbvh.layout import NODE_DTYPE, children_of
+from lbvh.morton import KEY_DTYPE, count_duplicates, morton_codes, morton_codes_numpy
+from lbvh.refit import refit_boxes, refit_numpy
+from lbvh.sort import digit_shifts, radix_sort, radix_sort_numpy
+
+
+def upload(ctx, v, f):
+    return dev.to_device(ctx, v), dev.to_device(ctx, f)
+
+
+def read(ctx, buf, dtype, n):
+    return dev.from_device(ctx, buf, dtype, (n,))
+
+
+def device_codes(ctx, v, f, key_bits):
+    mem = dev.MemoryTracker(ctx)
+    vb, fb = upload(ctx, v, f)
+    box, _ = centroid_bounds(ctx, mem, vb, fb, len(f))
+    keys, values, _ = morton_codes(ctx, mem, vb, fb, box, len(f), key_bits)
+    bounds = dev.from_device(ctx, box, np.float32, (2, 4))[:, :3]
+    return bounds, read(ctx, keys, KEY_DTYPE[key_bits], len(f)), read(ctx, values, np.uint32, len(f))
+
+
+MESHES = {
+    "teapot": lambda: shipped_mesh("teapot.obj"),
+    "cornell": lambda: shipped_mesh("cornell_box_gkit.obj"),
+    "soup": lambda: random_soup(20000, seed=3),
+    "flat_z": lambda: (random_soup(3000, seed=4)[0] * np.float32([1, 1, 0]), random_soup(3000)[1]),
+    "line_x": lambda: (random_soup(3000, seed=5)[0] * np.float32([1, 0, 0]), random_soup(3000)[1]),
+    "one_point": lambda: (np.full((30, 3), 7.5, np.float32), np.arange(30, dtype=np.uint32).reshape(10, 3)),
+    "huge": lambda: (random_soup(2000, seed=6)[0] * np.float32(1e38) - np.float32(5e37), random_soup(2000)[1]),
+    "tiny": lambda: (random_soup(2000, seed=7)[0] * np.float32(1e-30), random_soup(2000)[1]),
+    "far": lambda: (random_soup(2000, seed=8)[0] + np.float32(3e6), random_soup(2000)[1]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(MESHES))
+@pytest.mark.parametrize("key_bits", [32, 64])
+def test_bounds_and_morton_codes_match_numpy_exactly(ctx, name, key_bits):
+    v, f = MESHES[name]()
+    bounds, keys, values = device_codes(ctx, v, f, key_bits)
+    assert np.array_equal(bounds, centroid_bounds_numpy(v, f))
+    expected = morton_codes_numpy(triangle_centres_numpy(v, f), bounds, key_bits)
+    assert keys.dtype == expected.dtype
+    mismatch = np.flatnonzero(keys != expected)
+    assert mismatch.size == 0, f"{mismatch.size} codes differ, first at {mismatch[:5]}"
+    assert np.array_equal(values, np.arange(len(f)))
+    limit = 1 << (30 if key_bits == 32 else 63)
+    assert int(keys.max()) < limit
+
+
+def test_zero_extent_axes_give_zero_cells(ctx):
+    v, f = MESHES["line_x"]()
+    _, keys, _ = device_codes(ctx, v, f, 32)
+    # only x varies: y and z bits (positions 1 and 0 of each triple) are zero
+    yz_mask = sum(3 << (3 * b) for b in range(10))
+    assert not np.any(keys & np.uint32(yz_mask))
+    _, keys, _ = device_codes(ctx, *MESHES["one_point"](), 64)
+    assert np.all(keys == 0)
+
+
+def sort_on_device(ctx, keys, values, key_bits):
+    mem = dev.MemoryTracker(ctx)
+    kb = cl.Buffer(ctx.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=keys)
+    vb = cl.Buffer(ctx.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=values)
+    res = radix_sort(ctx, mem, kb, vb, len(keys), key_bits)
+    return read(ctx, res.keys, keys.dtype, len(keys)), read(ctx, res.values, np.uint32, len(keys)), res.passes
+
+
+@pytest.mark.parametrize("key_bits", [32, 64])
+@pytest.mark.parametrize("n, spread", [(1, 30), (2, 30), (1000, 3), (70001, 30), (70001, 63), (300000, 12)])
+def test_radix_sort_matches_stable_argsort(ctx, key_bits, n, spread):
+    rng = np.random.default_rng(n + spread)
+    dtype = KEY_DTYPE[key_bits]
+    top = min(spread, 63 if key_bits == 64 else 32)
+    keys = (rng.integers(0, 1 << top, n, dtype=np.uint64)).astype(dtype)
+    values = rng.permutation(n).astype(np.uint32)  # stability shows through the values
+    got_k, got_v, passes = sort_on_device(ctx, keys, values, key_bits)
+    exp_k, exp_v = radix_sort_numpy(keys, values)
+    assert np.array_equal(got_k, exp_k)
+    assert np.array_equal(got_v, exp_v)
+
+
+def test_radix_sort_skips_uniform_digits(ctx):
+    n = 50000
+    rng = np.random.default_rng(1)
+    # only bits 8..15 vary: exactly one pass must run
+    keys = ((rng.integers(0, 256, n).astype(np.uint64) << 8) | 0xAB0000FF).astype(np.uint32)
+    values = np.arange(n, dtype=np.uint32)
+    got_k, got_v, passes = sort_on_device(ctx, keys, values, 32)
+    assert passes == 1
+    exp_k, exp_v = radix_sort_numpy(keys, values)
+    assert np.array_equal(got_k, exp_k) and np.array_equal(got_v, exp_v)
+    equal = np.full(1000, 0xDEADBEEF, np.uint32)
+    got_k, got_v, passes = sort_on_device(ctx, equal, np.arange(1000, dtype=np.uint32), 32)
+    assert passes == 0 and np.array_equal(got_v, np.arange(1000))
+    assert digit_shifts(0xFF00, 32) == [8] and digit_shifts(1 << 62, 64) == [56]
+
+
+def emitted_tree(ctx, sorted_keys, key_bits):
+    n = len(sorted_keys)
+    mem = dev.MemoryTracker(ctx)
+    kb = dev.to_device(ctx, sorted_keys)
+    nodes, parent, _ = emit_hierarchy(ctx, mem, kb, n, key_bits)
+    return dev.from_device(ctx, nodes, NODE_DTYPE, (2 * n - 1,)), read(ctx, parent, np.int32, 2 * n - 1)
+
+
+KEY_SETS = {
+    "distinct": lambda rng, n, top: np.unique(rng.integers(0, 1 << top, n * 2, dtype=np.uint64))[:n],
+    "many_equal": lambda rng, n, top: np.sort(rng.integers(0, 8, n, dtype=np.uint64)),
+    "all_equal": lambda rng, n, top: np.full(n, 12345, np.uint64),
+    "runs": lambda rng, n, top: np.sort(rng.integers(0, 1 << top, n // 50 + 1, dtype=np.uint64)[rng.integers(0, n // 50 + 1, n)]),
+}
+
+
+@pytest.mark.parametrize("key_bits", [32, 64])
+@pytest.mark.parametrize("kind", sorted(KEY_SETS))
+@pytest.mark.parametrize("n", [2, 3, 17, 1025, 3000])
+def test_emission_matches_serial_karras(ctx, key_bits, kind, n):
+    rng = np.random.default_rng(n)
+    top = 30 if key_bits == 32 else 63
+    keys = np.sort(KEY_SETS[kind](rng, n, top)).astype(KEY_DTYPE[key_bits])
+    n = len(keys)
+    nodes, parent = emitted_tree(ctx, keys, key_bits)
+    children, parent_py = emit_hierarchy_python(keys, key_bits)
+    assert np.array_equal(children_of(nodes), children)
+    assert np.array_equal(parent, parent_py)
+    leaves = nodes[n - 1:]
+    assert np.array_equal(leaves["a"], np.arange(n)) and np.all(leaves["b"] == -1)
+
+
+def test_single_key_emits_one_leaf(ctx):
+    nodes, parent = emitted_tree(ctx, np.array([5], np.uint32), 32)
+    assert len(nodes) == 1 and nodes["a"][0] == 0 and nodes["b"][0] == -1 and parent[0] == -1
+
+
+@pytest.mark.parametrize("scene", ["teapot", "soup", "one_point", "huge"])
+def test_duplicate_count_matches_numpy(ctx, scene):
+    v, f = MESHES[scene]()
+    _, keys, values = device_codes(ctx, v, f, 32)
+    sorted_keys = np.sort(keys)
+    mem = dev.MemoryTracker(ctx)
+    count, _ = count_duplicates(ctx, mem, dev.to_device(ctx, sorted_keys), len(keys), 32)
+    assert count == int(np.sum(sorted_keys[1:] == sorted_keys[:-1]))
+
+
+@pytest.mark.parametrize("scene", ["teapot", "cornell", "flat_z", "huge", "tiny"])
+def test_device_refit_is_bit_identical_to_serial_refit(ctx, scene):
+    import lbvh
+    v, f = MESHES[scene]()
+    bvh = lbvh.build(v, f)
+    lower, upper = refit_numpy(bvh.nodes, bvh.parent, bvh.root, bvh.prim_order, v, f)
+    assert np.array_equal(bvh.lower, lower) and np.array_equal(bvh.upper, upper)
+    # and again after the vertices moved (the animation path)
+    rng = np.random.default_rng(0)
+    moved = (v + rng.normal(0, 0.05, v.shape).astype(np.float32) * (np.abs(v).max() + 1e-30)).astype(np.float32)
+    bvh.refit(moved)
+    lower, upper = refit_numpy(bvh.nodes, bvh.parent, bvh.root, bvh.prim_order, moved, f)
+    assert np.array_equal(bvh.lower, lower) and np.array_equal(bvh.upper, upper)
+    bvh.validate()
+
+
+def test_refit_of_a_host_tree_with_multi_triangle_leaves(ctx):
+    """The refit kernel also serves trees whose leaves are listed (other builders)."""
+    import lbvh
+    from lbvh.layout import make_nodes
+    v, f = shipped_mesh("suzanne.obj")
+    n = len(f)
+    # root 0 with two leaves holding the two halves of the triangles
+    children = np.array([[1, 2], [-1, -1], [-1, -1]])
+    ranges = np.array([[0, 0], [0, n // 2], [n // 2, n - n // 2]])
+    nodes = make_nodes(np.zeros((3, 3)), np.zeros((3, 3)), children, ranges)
+    bvh = lbvh.BVH.from_arrays(nodes, np.arange(n), 0, v, f, builder="hand-made")
+    bvh.refit(v)
+    bvh.validate()
+    lower, upper = refit_numpy(bvh.nodes, bvh.parent, 0, bvh.prim_order, v, f)
+    assert np.array_equal(bvh.lower, lower) and np.array_equal(bvh.upper, upper)
