@@ -71,7 +71,7 @@ def leaf_without_prims(n, p, o):
     (shrink_internal, "does not contain its"),
     (shrink_leaf, "not the exact box of its triangles"),
     (nan_box, "non-finite box"),
-    (swap_prims, "appears 2 times in prim_order"),
+    (swap_prims, r"appears [02] times in prim_order"),
     (wrong_parent, "has parent 5"),
     (self_loop, "child of 2 nodes|child of another|nobody's child|cycle|has parent"),
     (out_of_range_child, "outside"),
