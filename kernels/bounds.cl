@@ -1,20 +1,22 @@
 /* Stages 1 and 2: triangle boxes and the bounds of their centroids.
  *
  * Karras 2012, section 3: Morton codes are computed from primitive centroids
- * normalised by the scene's centroid bounds. The triangle box (min and max of
- * the three vertices, common.h) is cheap and exact, so it is recomputed where
- * it is needed instead of being stored: this saves 32 bytes per triangle of
- * device memory and a pass of writes.
+ * normalised by the scene's centroid bounds. The triangle boxes (min and max of
+ * the three vertices, exact) are stored in the caller's triangle order as two
+ * float4 each: the Morton stage then reads them contiguously and the refit
+ * gathers one 32-byte record per leaf instead of a face and three vertices.
+ * The centroid is the box centre, box_centre() in common.h.
  *
  * The reduction is two-level: each work-item reduces a contiguous chunk of
  * triangles to one box, then one work-item reduces those partial boxes.
  */
 #include "common.h"
 
-__kernel void centroid_bounds_partial(__global const float *vertices,
-                                      __global const uint *faces,
-                                      const int n, const int per_item,
-                                      __global float4 *partial /* 2 per work-item */) {
+__kernel void triangle_bounds(__global const float *vertices,
+                              __global const uint *faces,
+                              const int n, const int per_item,
+                              __global float4 *boxes /* lo, hi per triangle */,
+                              __global float4 *partial /* 2 per work-item */) {
     const int gid = get_global_id(0);
     const int first = chunk_first(gid, per_item, n);
     const int last = chunk_last(gid, per_item, n);
@@ -22,6 +24,8 @@ __kernel void centroid_bounds_partial(__global const float *vertices,
     for (int t = first; t < last; ++t) {
         float3 lo, hi;
         triangle_box(vertices, faces, t, &lo, &hi);
+        boxes[2 * t] = (float4)(lo, 0.0f);
+        boxes[2 * t + 1] = (float4)(hi, 0.0f);
         float3 c = box_centre(lo, hi);
         cmin = fmin(cmin, c);
         cmax = fmax(cmax, c);

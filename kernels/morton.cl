@@ -58,7 +58,7 @@ inline uint spread_bits(uint v) {
 }
 #endif
 
-__kernel void morton_codes(__global const float *vertices, __global const uint *faces,
+__kernel void morton_codes(__global const float4 *boxes /* lo, hi per triangle */,
                            __global const float4 *centroid_box /* lo, hi */,
                            const int n, const int per_item,
                            __global key_t *keys, __global uint *values) {
@@ -67,9 +67,7 @@ __kernel void morton_codes(__global const float *vertices, __global const uint *
     const int last = chunk_last(gid, per_item, n);
     const float4 blo = centroid_box[0], bhi = centroid_box[1];
     for (int t = first; t < last; ++t) {
-        float3 lo, hi;
-        triangle_box(vertices, faces, t, &lo, &hi);
-        float3 c = box_centre(lo, hi);
+        float3 c = box_centre(boxes[2 * t].xyz, boxes[2 * t + 1].xyz);
         key_t x = (key_t)quantise(c.x, blo.x, bhi.x);
         key_t y = (key_t)quantise(c.y, blo.y, bhi.y);
         key_t z = (key_t)quantise(c.z, blo.z, bhi.z);

@@ -1,7 +1,8 @@
 /* Stage 6: bottom-up refit of the node boxes (Karras 2012, section 4,
  * "Bounding box calculation"; Apetrei 2014 does the same walk).
  *
- * One walk per leaf: the leaf's box is the box of its triangles; then it climbs
+ * One walk per leaf: the leaf's box is the union of its triangles' boxes
+ * (stored by bounds.cl); then it climbs
  * towards the root. At each parent an atomic counter tells whether the sibling
  * has already arrived: the first arrival stops, the second (which then knows
  * that both children's boxes are written) computes the parent's box and goes
@@ -31,7 +32,7 @@ inline void load_box_volatile(volatile __global float *node_floats, int node,
     *hi = (float3)(p[4], p[5], p[6]);
 }
 
-__kernel void refit(__global const float *vertices, __global const uint *faces,
+__kernel void refit(__global const float4 *boxes /* lo, hi per triangle (bounds.cl) */,
                     __global const int *prim_order, __global float4 *nodes,
                     __global const int *parent, __global int *arrivals,
                     __global const int *leaf_nodes, const int use_leaf_list,
@@ -45,13 +46,12 @@ __kernel void refit(__global const float *vertices, __global const uint *faces,
         int node = use_leaf_list ? leaf_nodes[k] : leaf_first + k;
         const int slot = node_words[8 * node + 3];
         const int count = -node_words[8 * node + 7];
-        float3 lo, hi;
-        triangle_box(vertices, faces, prim_order[slot], &lo, &hi);
+        const int t0 = prim_order[slot];
+        float3 lo = boxes[2 * t0].xyz, hi = boxes[2 * t0 + 1].xyz;
         for (int s = 1; s < count; ++s) {
-            float3 tlo, thi;
-            triangle_box(vertices, faces, prim_order[slot + s], &tlo, &thi);
-            lo = fmin(lo, tlo);
-            hi = fmax(hi, thi);
+            const int t = prim_order[slot + s];
+            lo = fmin(lo, boxes[2 * t].xyz);
+            hi = fmax(hi, boxes[2 * t + 1].xyz);
         }
         store_box(node_floats, node, lo, hi);
         for (;;) {
@@ -70,4 +70,11 @@ __kernel void refit(__global const float *vertices, __global const uint *faces,
             node = p;
         }
     }
+}
+
+/* The arrival counters start at zero (a kernel: PoCL's buffer fill is slower). */
+__kernel void clear_arrivals(__global int *arrivals, const int count, const int per_item) {
+    const int gid = get_global_id(0);
+    const int last = chunk_last(gid, per_item, count);
+    for (int i = chunk_first(gid, per_item, count); i < last; ++i) arrivals[i] = 0;
 }

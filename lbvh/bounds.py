@@ -1,8 +1,8 @@
 """Stages 1-2: triangle boxes and the centroid bounds (kernels/bounds.cl).
 
-The triangle box is recomputed by each stage that needs it (min/max of three
-vertices is exact), so this stage only produces the bounds of the centroids,
-by a two-level reduction on the device.
+The boxes (min/max of three vertices, exact) are stored as two float4 per
+triangle in the caller's order; the bounds of their centres come from a
+two-level reduction on the device.
 """
 from __future__ import annotations
 
@@ -14,25 +14,32 @@ from .device import Context, MemoryTracker
 KERNEL_FILE = "bounds.cl"
 
 
-def centroid_bounds(ctx: Context, mem: MemoryTracker, vertices: cl.Buffer, faces: cl.Buffer,
-                    n: int) -> tuple[cl.Buffer, list[cl.Event]]:
-    """Device buffer of two float4 (min, max of the triangle box centres) and the events."""
+def triangle_bounds(ctx: Context, mem: MemoryTracker, vertices: cl.Buffer, faces: cl.Buffer,
+                    n: int) -> tuple[cl.Buffer, cl.Buffer, list[cl.Event]]:
+    """Device triangle boxes (``2n`` float4: lo, hi), the centroid box (2 float4) and the events."""
     launch = ctx.launch(n, gpu_per_item=-(-n // 4096))
+    boxes = mem.alloc(32 * n)
     partial = mem.alloc(32 * launch.global_size)
     out = mem.alloc(32)
-    ev1 = ctx.kernel(KERNEL_FILE, "centroid_bounds_partial")(ctx.queue, (launch.global_size,), launch.local,
-                                       vertices, faces, np.int32(n), np.int32(launch.per_item),
-                                       partial)
+    ev1 = ctx.kernel(KERNEL_FILE, "triangle_bounds")(
+        ctx.queue, (launch.global_size,), launch.local, vertices, faces, np.int32(n),
+        np.int32(launch.per_item), boxes, partial)
     ev2 = ctx.kernel(KERNEL_FILE, "reduce_boxes")(ctx.queue, (1,), (1,), partial, np.int32(launch.global_size), out)
     mem.free(partial)
-    return out, [ev1, ev2]
+    return boxes, out, [ev1, ev2]
+
+
+def triangle_boxes_numpy(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Numpy twin: ``float32 (F, 3)`` min and max corners of each triangle (exact)."""
+    tri = vertices[faces]
+    lo = np.minimum(np.minimum(tri[:, 0], tri[:, 1]), tri[:, 2])
+    hi = np.maximum(np.maximum(tri[:, 0], tri[:, 1]), tri[:, 2])
+    return lo, hi
 
 
 def triangle_centres_numpy(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Numpy twin: ``float32 (F, 3)`` centres of the triangle boxes, same float ops as the kernel."""
-    tri = vertices[faces]
-    lo = np.minimum(np.minimum(tri[:, 0], tri[:, 1]), tri[:, 2])
-    hi = np.maximum(np.maximum(tri[:, 0], tri[:, 1]), tri[:, 2])
+    lo, hi = triangle_boxes_numpy(vertices, faces)
     half = np.float32(0.5)
     return lo * half + hi * half
 

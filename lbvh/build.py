@@ -14,12 +14,12 @@ from typing import Any
 import pyopencl as cl
 
 from . import device as dev
-from .bounds import centroid_bounds
+from .bounds import triangle_bounds
 from .bvh import BVH
 from .emit import emit_hierarchy
 from .geometry import as_mesh
 from .morton import AUTO_DUPLICATE_FRACTION, choose_key_bits, count_duplicates, morton_codes
-from .refit import refit_boxes
+from .refit import refit_from_boxes
 from .report import PHASES, BuildReport
 from .sort import radix_sort
 
@@ -88,11 +88,11 @@ def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl
     events: dict[str, list] = {phase: [] for phase in PHASES}
     t0 = time.perf_counter()
 
-    box, evs = centroid_bounds(ctx, mem, vbuf, fbuf, n)
+    boxes, box, evs = triangle_bounds(ctx, mem, vbuf, fbuf, n)
     events["bounds"] += evs
 
     bits = key_bits or 32
-    keys, values, evs = morton_codes(ctx, mem, vbuf, fbuf, box, n, bits)
+    keys, values, evs = morton_codes(ctx, mem, boxes, box, n, bits)
     events["morton"] += evs
     result = radix_sort(ctx, mem, keys, values, n, bits)
     events["sort"] += result.events
@@ -104,7 +104,7 @@ def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl
         bits, choice = choose_key_bits(duplicates, n, auto_duplicate_fraction)
         if bits == 64:
             mem.free(result.keys, result.values)
-            keys, values, evs = morton_codes(ctx, mem, vbuf, fbuf, box, n, 64)
+            keys, values, evs = morton_codes(ctx, mem, boxes, box, n, 64)
             events["morton"] += evs
             result = radix_sort(ctx, mem, keys, values, n, 64)
             events["sort"] += result.events
@@ -119,11 +119,10 @@ def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl
     prim_order = result.values
 
     arrivals = mem.alloc(4 * (2 * n - 1))
-    events["refit"] += refit_boxes(ctx, vbuf, fbuf, prim_order, nodes, parent, n, 2 * n - 1,
-                                   arrivals=arrivals)
+    events["refit"] += refit_from_boxes(ctx, boxes, prim_order, nodes, parent, arrivals, n, 2 * n - 1)
     ctx.queue.finish()
     wall = time.perf_counter() - t0
-    mem.free(arrivals)
+    mem.free(arrivals, boxes)
 
     phase_seconds = {phase: dev.event_seconds(evs) for phase, evs in events.items()}
     report = BuildReport(device=ctx.name, builder="lbvh", num_triangles=n, key_bits=bits,

@@ -26,15 +26,15 @@ def code_bits(key_bits: int) -> int:
     return 3 * AXIS_BITS[key_bits]
 
 
-def morton_codes(ctx: Context, mem: MemoryTracker, vertices: cl.Buffer, faces: cl.Buffer,
+def morton_codes(ctx: Context, mem: MemoryTracker, boxes: cl.Buffer,
                  centroid_box: cl.Buffer, n: int, key_bits: int
                  ) -> tuple[cl.Buffer, cl.Buffer, list[cl.Event]]:
-    """Device keys (``uint32`` or ``uint64``) and values (triangle index) for ``n`` triangles."""
+    """Device keys (``uint32`` or ``uint64``) and values (triangle index) for ``n`` triangle boxes."""
     keys = mem.alloc(n * KEY_DTYPE[key_bits].itemsize)
     values = mem.alloc(n * 4)
     launch = ctx.launch(n)
     ev = ctx.kernel(KERNEL_FILE, "morton_codes", {"KEY_BITS": key_bits})(
-        ctx.queue, (launch.global_size,), launch.local, vertices, faces, centroid_box,
+        ctx.queue, (launch.global_size,), launch.local, boxes, centroid_box,
         np.int32(n), np.int32(launch.per_item), keys, values)
     return keys, values, [ev]
 

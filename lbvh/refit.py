@@ -9,34 +9,50 @@ from __future__ import annotations
 import numpy as np
 import pyopencl as cl
 
-from .device import Context
+from .bounds import triangle_bounds
+from .device import Context, MemoryTracker
 from .layout import children_of, is_leaf, node_depths, prim_range_of
 
 KERNEL_FILE = "refit.cl"
 
 
-def refit_boxes(ctx: Context, vertices: cl.Buffer, faces: cl.Buffer, prim_order: cl.Buffer,
-                nodes: cl.Buffer, parent: cl.Buffer, num_prims: int, num_nodes: int,
-                leaf_nodes: cl.Buffer | None = None, num_leaves: int | None = None,
-                arrivals: cl.Buffer | None = None) -> list[cl.Event]:
-    """Recompute every node box in place. Without ``leaf_nodes`` the leaves are
-    nodes ``num_prims - 1 ..`` (Karras numbering); ``arrivals`` is scratch of
-    ``4 * num_nodes`` bytes (allocated here when not given)."""
-    if arrivals is None:
-        arrivals = cl.Buffer(ctx.ctx, cl.mem_flags.READ_WRITE, 4 * num_nodes)
+def refit_from_boxes(ctx: Context, boxes: cl.Buffer, prim_order: cl.Buffer, nodes: cl.Buffer,
+                     parent: cl.Buffer, arrivals: cl.Buffer, num_prims: int, num_nodes: int,
+                     leaf_nodes: cl.Buffer | None = None, num_leaves: int | None = None
+                     ) -> list[cl.Event]:
+    """Recompute every node box in place from the triangle boxes (``2 * num_prims`` float4).
+
+    Without ``leaf_nodes`` the leaves are nodes ``num_prims - 1 ..`` (Karras
+    numbering); ``arrivals`` is scratch of ``4 * num_nodes`` bytes.
+    """
     if num_leaves is None:
-        num_leaves = num_prims if leaf_nodes is None else None
-    if leaf_nodes is not None and num_leaves is None:
-        num_leaves = leaf_nodes.size // 4
-    fill = cl.enqueue_fill_buffer(ctx.queue, arrivals, np.int32(0), 0, 4 * num_nodes)
+        num_leaves = num_prims if leaf_nodes is None else leaf_nodes.size // 4
+    clear = ctx.launch(num_nodes, min_per_item=4096)
+    ev0 = ctx.kernel(KERNEL_FILE, "clear_arrivals")(
+        ctx.queue, (clear.global_size,), clear.local, arrivals, np.int32(num_nodes),
+        np.int32(clear.per_item))
     launch = ctx.launch(num_leaves, min_per_item=256)
     use_list = leaf_nodes is not None
-    leaf_arg = leaf_nodes if use_list else arrivals  # unused by the kernel in that case
+    leaf_arg = leaf_nodes if use_list else arrivals  # not read by the kernel in that case
     ev = ctx.kernel(KERNEL_FILE, "refit")(
-        ctx.queue, (launch.global_size,), launch.local, vertices, faces, prim_order, nodes, parent,
+        ctx.queue, (launch.global_size,), launch.local, boxes, prim_order, nodes, parent,
         arrivals, leaf_arg, np.int32(use_list), np.int32(num_prims - 1), np.int32(num_leaves),
         np.int32(launch.per_item))
-    return [fill, ev]
+    return [ev0, ev]
+
+
+def refit_boxes(ctx: Context, vertices: cl.Buffer, faces: cl.Buffer, prim_order: cl.Buffer,
+                nodes: cl.Buffer, parent: cl.Buffer, num_prims: int, num_nodes: int,
+                leaf_nodes: cl.Buffer | None = None) -> list[cl.Event]:
+    """Refit after the vertices moved: triangle boxes (stage 1), then the bottom-up pass."""
+    mem = MemoryTracker(ctx)
+    boxes, centroid_box, events = triangle_bounds(ctx, mem, vertices, faces, num_prims)
+    arrivals = mem.alloc(4 * num_nodes)
+    events += refit_from_boxes(ctx, boxes, prim_order, nodes, parent, arrivals, num_prims,
+                               num_nodes, leaf_nodes)
+    ctx.queue.finish()
+    mem.free(boxes, centroid_box, arrivals)
+    return events
 
 
 def refit_numpy(nodes: np.ndarray, parent: np.ndarray, root: int, prim_order: np.ndarray,

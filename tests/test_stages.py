@@ -12,7 +12,8 @@ import pytest
 
 from conftest import random_soup, shared_mesh, shipped_mesh
 from lbvh import device as dev
-from lbvh.bounds import centroid_bounds, centroid_bounds_numpy, triangle_centres_numpy
+from lbvh.bounds import (centroid_bounds_numpy, triangle_bounds, triangle_boxes_numpy,
+                         triangle_centres_numpy)
 from lbvh.emit import emit_hierarchy, emit_hierarchy_python
 from lbvh.layout import NODE_DTYPE, children_of
 from lbvh.morton import KEY_DTYPE, count_duplicates, morton_codes, morton_codes_numpy
@@ -31,8 +32,11 @@ def read(ctx, buf, dtype, n):
 def device_codes(ctx, v, f, key_bits):
     mem = dev.MemoryTracker(ctx)
     vb, fb = upload(ctx, v, f)
-    box, _ = centroid_bounds(ctx, mem, vb, fb, len(f))
-    keys, values, _ = morton_codes(ctx, mem, vb, fb, box, len(f), key_bits)
+    boxes, box, _ = triangle_bounds(ctx, mem, vb, fb, len(f))
+    keys, values, _ = morton_codes(ctx, mem, boxes, box, len(f), key_bits)
+    tri_boxes = dev.from_device(ctx, boxes, np.float32, (len(f), 2, 4))[:, :, :3]
+    lo, hi = triangle_boxes_numpy(v, f)
+    assert np.array_equal(tri_boxes[:, 0], lo) and np.array_equal(tri_boxes[:, 1], hi)
     bounds = dev.from_device(ctx, box, np.float32, (2, 4))[:, :3]
     return bounds, read(ctx, keys, KEY_DTYPE[key_bits], len(f)), read(ctx, values, np.uint32, len(f))
 
