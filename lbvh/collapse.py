@@ -1,0 +1,230 @@
+"""Leaf collapse on the device (kernels/collapse.cl): merge subtrees into leaves by the SAH.
+
+The device LBVH has one triangle per leaf; testing a few triangles is often
+cheaper than visiting the nodes above them. A bottom-up pass computes, for
+every node, the cheaper of keeping its subtree and turning it into one leaf
+(cost model in kernels/collapse.cl, the same SAH convention as
+:mod:`lbvh.quality`), then a compaction drops the nodes below the new leaves.
+Only a few scalars (the new node and leaf counts) and the new leaf list come
+back to the host.
+
+Works on any tree in the project's layout: a subtree becomes a leaf only when
+its slots of ``prim_order`` are contiguous (always true for Karras trees and
+for the SAH builder's trees) and it holds at most ``max_leaf_size`` triangles.
+Kept nodes keep their relative order, so the root stays node 0 and the
+Karras numbering's internal-nodes-first order survives (docs/layout.md).
+
+:func:`collapse_numpy` is the numpy twin of the decision and of the compacted
+tree; with correctly rounded float32 division on the device (PoCL) both agree
+bit for bit.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pyopencl as cl
+
+from . import device as dev
+from .bvh import BVH
+from .layout import NODE_DTYPE, children_of, is_leaf, node_depths
+from .quality import check_sah_constants
+from .report import BuildReport
+
+KERNEL_FILE = "collapse.cl"
+C_NODE = 1.0
+C_TRI = 1.0
+MAX_LEAF_SIZE = 8
+_STATS_DTYPE = np.dtype([("first", "<i4"), ("end", "<i4"), ("count", "<i4"), ("cost", "<f4")])
+
+
+def _leaf_walks(bvh: BVH) -> tuple[cl.Buffer | None, int, int]:
+    """Where the bottom-up walks start: (leaf list or None, first Karras leaf, leaf count)."""
+    if bvh._leaf_nodes is None:  # Karras numbering: leaves are nodes F-1 .. 2F-2
+        return None, bvh.num_prims - 1, bvh.num_prims
+    return bvh._leaf_nodes_device(), 0, len(bvh._leaf_nodes)
+
+
+def _decide(bvh: BVH, c_node: float, c_tri: float, max_leaf_size: int
+            ) -> tuple[cl.Buffer, cl.Buffer, list[cl.Event]]:
+    """Run collapse_costs: per-node stats (``_STATS_DTYPE``) and becomes_leaf (int32)."""
+    ctx, n = bvh.ctx, bvh.num_nodes
+    leaf_list, leaf_first, num_leaves = _leaf_walks(bvh)
+    arrivals = dev.empty(ctx, 4 * n)
+    stats = dev.empty(ctx, _STATS_DTYPE.itemsize * n)
+    becomes_leaf = dev.empty(ctx, 4 * n)
+    fill = cl.enqueue_fill_buffer(ctx.queue, arrivals, np.int32(0), 0, 4 * n)
+    launch = ctx.launch(num_leaves, min_per_item=256)
+    ev = ctx.kernel(KERNEL_FILE, "collapse_costs")(
+        ctx.queue, (launch.global_size,), launch.local, bvh.nodes_buf, bvh.parent_buf, arrivals,
+        leaf_list if leaf_list is not None else arrivals, np.int32(leaf_list is not None),
+        np.int32(leaf_first), np.int32(num_leaves), np.int32(launch.per_item),
+        np.float32(c_node), np.float32(c_tri), np.int32(max_leaf_size), stats, becomes_leaf)
+    arrivals.release()  # OpenCL frees it once the kernel is done
+    return stats, becomes_leaf, [fill, ev]
+
+
+def collapse_decisions(bvh: BVH, *, c_node: float = C_NODE, c_tri: float = C_TRI,
+                       max_leaf_size: int = MAX_LEAF_SIZE) -> dict[str, np.ndarray]:
+    """The device's per-node decision, read back (for checks and inspection).
+
+    Returns ``first``, ``end``, ``count`` (``int32 (num_nodes,)``: the subtree's
+    slot span and triangle count), ``cost`` (``float32``: C(n) per ray reaching
+    the node) and ``becomes_leaf`` (``bool``: leaf in the collapsed tree if no
+    ancestor is).
+    """
+    check_sah_constants(c_node, c_tri, max_leaf_size)
+    stats, becomes_leaf, _ = _decide(bvh, c_node, c_tri, max_leaf_size)
+    s = dev.from_device(bvh.ctx, stats, _STATS_DTYPE, (bvh.num_nodes,))
+    flags = dev.from_device(bvh.ctx, becomes_leaf, np.int32, (bvh.num_nodes,))
+    return {"first": s["first"], "end": s["end"], "count": s["count"], "cost": s["cost"],
+            "becomes_leaf": flags != 0}
+
+
+def collapse_leaves(bvh: BVH, *, c_node: float = C_NODE, c_tri: float = C_TRI,
+                    max_leaf_size: int = MAX_LEAF_SIZE) -> BVH:
+    """A new BVH whose leaves are the subtrees of ``bvh`` that the SAH prefers as leaves.
+
+    Args:
+        bvh: any tree in the layout (the device LBVH is the intended input);
+            it is not modified.
+        c_node, c_tri: SAH constants (cost of a node visit, of a triangle test).
+        max_leaf_size: largest leaf the collapse creates (existing leaves stay).
+
+    Returns:
+        :class:`lbvh.BVH` sharing the mesh buffers of ``bvh``, root 0, builder
+        ``"<builder>+collapse"``; its report adds a ``collapse`` phase.
+    """
+    check_sah_constants(c_node, c_tri, max_leaf_size)
+    ctx, n = bvh.ctx, bvh.num_nodes
+    t0 = time.perf_counter()
+    stats, becomes_leaf, events = _decide(bvh, c_node, c_tri, max_leaf_size)
+    launch = ctx.launch(n, min_per_item=1024, gpu_per_item=max(1, -(-n // 4096)))
+    chunks = launch.global_size
+    grid = (ctx.queue, (chunks,), launch.local)
+    flags = dev.empty(ctx, 8 * n)
+    chunk_counts = dev.empty(ctx, 8 * (chunks + 1))
+    events.append(ctx.kernel(KERNEL_FILE, "mark_kept")(
+        *grid, bvh.parent_buf, becomes_leaf, np.int32(n), np.int32(launch.per_item), flags,
+        chunk_counts))
+    events.append(ctx.kernel(KERNEL_FILE, "scan_chunks")(
+        ctx.queue, (1,), None, chunk_counts, np.int32(chunks)))
+    totals = np.empty(2, np.int32)
+    cl.enqueue_copy(ctx.queue, totals, chunk_counts, src_offset=8 * chunks, is_blocking=True)
+    new_count, leaf_count = int(totals[0]), int(totals[1])
+    new_index = dev.empty(ctx, 4 * n)
+    leaf_list = dev.empty(ctx, 4 * leaf_count)
+    events.append(ctx.kernel(KERNEL_FILE, "assign_indices")(
+        *grid, flags, chunk_counts, np.int32(n), np.int32(launch.per_item), new_index, leaf_list))
+    rw = cl.mem_flags.READ_WRITE
+    out_nodes = dev.empty(ctx, NODE_DTYPE.itemsize * new_count, rw)
+    out_parent = dev.empty(ctx, 4 * new_count, rw)
+    events.append(ctx.kernel(KERNEL_FILE, "emit_compacted")(
+        *grid, bvh.nodes_buf, bvh.parent_buf, flags, stats, new_index, np.int32(n),
+        np.int32(launch.per_item), out_nodes, out_parent))
+    prim_order = dev.empty(ctx, 4 * bvh.num_prims, rw)
+    events.append(cl.enqueue_copy(ctx.queue, prim_order, bvh.prim_order_buf, byte_count=4 * bvh.num_prims))
+    root = np.empty(1, np.int32)
+    cl.enqueue_copy(ctx.queue, root, new_index, src_offset=4 * bvh.root, is_blocking=True)
+    leaves = dev.from_device(ctx, leaf_list, np.int32, (leaf_count,))
+    wall = time.perf_counter() - t0
+    for buf in (stats, becomes_leaf, flags, chunk_counts, new_index, leaf_list):
+        buf.release()
+    report = _collapse_report(bvh, dev.event_seconds(events), wall)
+    return BVH(ctx, bvh.vertices, bvh.faces, bvh.vertices_buf, bvh.faces_buf, out_nodes, out_parent,
+               prim_order, new_count, int(root[0]), report.builder, report, leaf_nodes=leaves)
+
+
+def _collapse_report(bvh: BVH, device_seconds: float, wall: float) -> BuildReport:
+    """The input tree's report with the collapse added as one more phase."""
+    builder = f"{bvh.builder}+collapse"
+    old = bvh.build_report or BuildReport(device=bvh.ctx.name, builder=bvh.builder,
+                                          num_triangles=bvh.num_prims)
+    return dataclasses.replace(old, builder=builder,
+                               phase_seconds={**old.phase_seconds, "collapse": device_seconds},
+                               device_seconds=old.device_seconds + device_seconds,
+                               wall_seconds=old.wall_seconds + wall,
+                               leaf_size_histogram={})
+
+
+# -- numpy twin ---------------------------------------------------------------------
+
+@dataclass
+class CollapseResult:
+    """What :func:`collapse_numpy` computes: the decision per old node and the new tree."""
+    first: np.ndarray         #: int32 (N,) first slot of each subtree
+    end: np.ndarray           #: int32 (N,) one past its last slot
+    count: np.ndarray         #: int32 (N,) its triangle count
+    cost: np.ndarray          #: float32 (N,) C(n)
+    becomes_leaf: np.ndarray  #: bool (N,)
+    nodes: np.ndarray         #: NODE_DTYPE (M,) the compacted tree
+    parent: np.ndarray        #: int32 (M,)
+    leaf_nodes: np.ndarray    #: int32 leaves of the compacted tree, ascending
+    root: int
+
+
+def _box_scale(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """float32 (n, 1): 2**-e for the exponent of each box's largest |coordinate| (kernel box_scale)."""
+    m = np.maximum(np.abs(lo), np.abs(hi)).max(axis=1)
+    e = np.clip(((m.view(np.int32) >> 23) & 0xFF) - 126, -126, 126)
+    return ((127 - e) << 23).astype(np.int32).view(np.float32)[:, None]
+
+
+def _scaled_half_area(lo: np.ndarray, hi: np.ndarray, s: np.ndarray) -> np.ndarray:
+    d = hi * s - lo * s
+    return d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0]
+
+
+def collapse_numpy(nodes: np.ndarray, parent: np.ndarray, root: int, c_node: float = C_NODE,
+                   c_tri: float = C_TRI, max_leaf_size: int = MAX_LEAF_SIZE) -> CollapseResult:
+    """Numpy twin of :func:`collapse_leaves`: same float32 operations, level by level."""
+    num = len(nodes)
+    c_node32, c_tri32 = np.float32(c_node), np.float32(c_tri)
+    leaf = is_leaf(nodes)
+    children = children_of(nodes)
+    lo, hi = nodes["lower"], nodes["upper"]
+    first = np.where(leaf, nodes["a"], 0).astype(np.int32)
+    count = np.where(leaf, -nodes["b"], 0).astype(np.int32)
+    end = first + count
+    cost = c_tri32 * count.astype(np.float32)
+    becomes = leaf.copy()
+    depth = node_depths(parent, root)
+    internal = np.flatnonzero(~leaf)
+    levels = [internal[depth[internal] == d] for d in range(int(depth.max()) + 1)]
+    for at in reversed(levels):
+        left, right = children[at, 0], children[at, 1]
+        s = _box_scale(lo[at], hi[at])
+        an = _scaled_half_area(lo[at], hi[at], s)
+        has_area = an > 0
+        safe = np.where(has_area, an, np.float32(1))
+        rl = np.where(has_area, _scaled_half_area(lo[left], hi[left], s) / safe, np.float32(1))
+        rr = np.where(has_area, _scaled_half_area(lo[right], hi[right], s) / safe, np.float32(1))
+        first[at] = np.minimum(first[left], first[right])
+        end[at] = np.maximum(end[left], end[right])
+        count[at] = count[left] + count[right]
+        subtree_cost = c_node32 + (rl * cost[left] + rr * cost[right])
+        leaf_cost = c_tri32 * count[at].astype(np.float32)
+        collapse = (count[at] <= max_leaf_size) & (end[at] - first[at] == count[at]) \
+            & (leaf_cost <= subtree_cost)
+        becomes[at] = collapse
+        cost[at] = np.where(collapse, leaf_cost, subtree_cost)
+    dropped = np.zeros(num, bool)
+    for at in levels:
+        below = dropped[at] | becomes[at]
+        dropped[children[at, 0]] = below
+        dropped[children[at, 1]] = below
+    kept = ~dropped
+    out_leaf = kept & becomes
+    new_index = np.where(kept, np.cumsum(kept) - 1, -1).astype(np.int32)
+    old = np.flatnonzero(kept)
+    out = np.zeros(len(old), NODE_DTYPE)
+    out["lower"], out["upper"] = lo[old], hi[old]
+    as_leaf = out_leaf[old]
+    out["a"] = np.where(as_leaf, first[old], new_index[np.maximum(children[old, 0], 0)])
+    out["b"] = np.where(as_leaf, -count[old], new_index[np.maximum(children[old, 1], 0)])
+    old_parent = parent[old]
+    out_parent = np.where(old_parent < 0, -1, new_index[np.maximum(old_parent, 0)]).astype(np.int32)
+    return CollapseResult(first, end, count, cost, becomes, out, out_parent,
+                          new_index[out_leaf].astype(np.int32), int(new_index[root]))
