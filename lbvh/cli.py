@@ -1,16 +1,49 @@
-"""Command line: ``lbvh info SCENE`` prints the build report of a scene's BVH.
+"""lbvh command line: render a scene, report its BVH, list the OpenCL devices.
+
+``lbvh render SCENE -o image.png`` renders a scene; ``lbvh info SCENE`` prints
+the build report of its BVH; ``lbvh devices`` lists the OpenCL devices.
 
 Errors (bad files, bad meshes, bad options, device problems) end the program
-with a one-line message and a non-zero exit status, not a traceback.
+with a one-line message on stderr and exit status 2, not a traceback.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
+import time
+from pathlib import Path
 
 from .build import BUILDERS, build
 from .device import DeviceError, describe, find_device
+
+
+class UsageError(ValueError):
+    """A bad command line; reported in one line like every other error."""
+
+
+class _Parser(argparse.ArgumentParser):
+    # argparse prints the usage and exits on a bad option; we want the same
+    # one-line error as for every other problem, and main() to return the status.
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise UsageError(f"{message} (see {self.prog} --help)")
+
+
+SIZE_PATTERN = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"WxH"`` -> ``(W, H)``; ``ValueError`` naming the text otherwise."""
+    from .camera import MAX_SIDE
+
+    match = SIZE_PATTERN.match(text)
+    if not match:
+        raise ValueError(f"--size: {text!r} is not WIDTHxHEIGHT (e.g. 640x480)")
+    width, height = int(match.group(1)), int(match.group(2))
+    if not (1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE):
+        raise ValueError(f"--size: {text!r}: each side must be 1 to {MAX_SIDE} pixels")
+    return width, height
 
 
 def _add_build_options(p: argparse.ArgumentParser) -> None:
@@ -41,6 +74,56 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_render(args: argparse.Namespace) -> int:
+    from .camera import DEFAULT_SIZE, frame_bounds
+    from .image import image_kind
+    from .render import check_mode, render
+    from .scene import load_scene
+
+    # Everything the user typed is checked before the (slow) build starts.
+    image_kind(args.output)
+    folder = Path(args.output).resolve().parent
+    if not folder.is_dir():
+        raise ValueError(f"{args.output}: cannot write, the folder {folder} does not exist")
+    check_mode(args.mode)
+    size = parse_size(args.size) if args.size is not None else None
+    if args.ao_samples < 1:
+        raise ValueError(f"--ao-samples: {args.ao_samples}, expected at least 1")
+    scene = load_scene(args.scene)
+    if scene.camera is not None:
+        camera = scene.camera.resized(*size) if size else scene.camera
+    else:
+        camera = frame_bounds(scene.vertices.min(axis=0), scene.vertices.max(axis=0),
+                              *(size or DEFAULT_SIZE))
+    start = time.perf_counter()
+    bvh = build(scene.vertices, scene.faces, builder=args.builder, key_bits=args.keys,
+                device=args.device)
+    build_seconds = time.perf_counter() - start
+    result = render(bvh, camera, args.mode, ao_samples=args.ao_samples,
+                    triangle_test=args.triangle_test)
+    result.save(args.output)
+    report = bvh.report()
+    device_time = f" (device {report.device_seconds * 1e3:.1f} ms)" if report.device_seconds else ""
+    hits = int((result.primary_hits.prim >= 0).sum())
+    print(f"scene:     {args.scene}: {bvh.num_prims:,} triangles")
+    print(f"device:    {bvh.ctx.name}")
+    print(f"build:     {args.builder} in {build_seconds * 1e3:.1f} ms{device_time}, "
+          f"depth {report.depth}")
+    print(f"render:    {args.mode} {camera.width}x{camera.height} ({args.triangle_test}) in "
+          f"{result.total_seconds * 1e3:.1f} ms, of which first calls (kernel compile) "
+          f"{result.warmup_seconds * 1e3:.1f} ms")
+    print(f"rays:      {result.rays:,} in {result.trace_seconds * 1e3:.1f} ms = "
+          f"{result.rays_per_second / 1e6:.2f} Mrays/s")
+    print(f"hits:      {hits:,} of {camera.num_pixels:,} pixels")
+    print(f"overflow:  {result.overflow_count} stack overflows")
+    if args.mode == "heatmap":
+        cost = result.image[:, :, 0]
+        print(f"cost:      nodes visited + triangles tested per ray: mean {cost.mean():.1f}, "
+              f"max {cost.max():.0f}")
+    print(f"wrote:     {args.output}")
+    return 0
+
+
 def cmd_devices(args: argparse.Namespace) -> int:
     from .device import _all_devices
 
@@ -53,7 +136,9 @@ def cmd_devices(args: argparse.Namespace) -> int:
 
 
 def make_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="lbvh", description=__doc__.splitlines()[0])
+    from .render import AO_SAMPLES, MODES
+
+    parser = _Parser(prog="lbvh", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("info", help="build a scene's BVH and print the report")
     p.add_argument("scene", help="mesh file (OBJ, PLY, STL, GLB/GLTF, OFF) or scene description")
@@ -61,6 +146,20 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--validate", action="store_true", help="also run the tree validator")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=cmd_info)
+    p = sub.add_parser("render", help="render a scene to an image file")
+    p.add_argument("scene", help="mesh file (OBJ, PLY, STL, GLB/GLTF, OFF) or scene description (.json)")
+    p.add_argument("-o", "--output", required=True,
+                   help="image file: .png/.jpg (8-bit picture) or .exr/.tif (float values)")
+    p.add_argument("--mode", default="normals", choices=MODES,
+                   help="what to draw (default: normals)")
+    p.add_argument("--size", default=None, metavar="WxH",
+                   help="image size (default: the scene's camera, else 640x480)")
+    p.add_argument("--ao-samples", type=int, default=AO_SAMPLES, metavar="N",
+                   help=f"ambient occlusion rays per pixel (default {AO_SAMPLES})")
+    p.add_argument("--triangle-test", default="watertight", choices=["watertight", "moller"],
+                   help="ray/triangle test (default: watertight)")
+    _add_build_options(p)
+    p.set_defaults(func=cmd_render)
     p = sub.add_parser("devices", help="list the OpenCL devices")
     p.add_argument("--device", default=None)
     p.set_defaults(func=cmd_devices)
@@ -69,12 +168,21 @@ def make_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = make_parser()
-    args = parser.parse_args(argv)
     try:
+        args = parser.parse_args(argv)
         return args.func(args)
+    except KeyboardInterrupt:
+        print("lbvh: interrupted", file=sys.stderr)
+        return 130
+    except MemoryError:
+        print("lbvh: error: out of memory (try a smaller scene or --size)", file=sys.stderr)
+        return 2
     except (ValueError, OSError, DeviceError) as exc:
-        print(f"lbvh: error: {exc}".splitlines()[0] if not isinstance(exc, DeviceError)
-              else f"lbvh: error: {exc}", file=sys.stderr)
+        message = str(exc).removeprefix("lbvh: ")
+        # A device error keeps its further lines (the devices available, a build log).
+        if not isinstance(exc, DeviceError):
+            message = message.splitlines()[0] if message else type(exc).__name__
+        print(f"lbvh: error: {message}", file=sys.stderr)
         return 2
 
 
