@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pyopencl as cl
@@ -84,7 +85,7 @@ def collapse_decisions(bvh: BVH, *, c_node: float = C_NODE, c_tri: float = C_TRI
 
 
 def collapse_leaves(bvh: BVH, *, c_node: float = C_NODE, c_tri: float = C_TRI,
-                    max_leaf_size: int = MAX_LEAF_SIZE) -> BVH:
+                    max_leaf_size: int = MAX_LEAF_SIZE, **unknown: Any) -> BVH:
     """A new BVH whose leaves are the subtrees of ``bvh`` that the SAH prefers as leaves.
 
     Args:
@@ -96,7 +97,12 @@ def collapse_leaves(bvh: BVH, *, c_node: float = C_NODE, c_tri: float = C_TRI,
     Returns:
         :class:`lbvh.BVH` sharing the mesh buffers of ``bvh``, root 0, builder
         ``"<builder>+collapse"``; its report adds a ``collapse`` phase.
+
+    Raises:
+        ValueError: a bad or unknown option.
     """
+    if unknown:
+        raise ValueError(f"unknown option(s) for the leaf collapse: {', '.join(sorted(unknown))}")
     check_sah_constants(c_node, c_tri, max_leaf_size)
     ctx, n = bvh.ctx, bvh.num_nodes
     t0 = time.perf_counter()

@@ -108,7 +108,8 @@ def test_refit_of_a_collapsed_tree():
     assert np.array_equal(collapsed.lower, lower) and np.array_equal(collapsed.upper, upper)
 
 
-@pytest.mark.parametrize("options", [{"c_node": -1.0}, {"c_tri": 0.0}, {"max_leaf_size": 0}])
+@pytest.mark.parametrize("options", [{"c_node": -1.0}, {"c_tri": 0.0}, {"max_leaf_size": 0},
+                                     {"key_bits": 30}])
 def test_bad_options_are_value_errors(options):
     bvh = lbvh.build(*random_soup(10))
     with pytest.raises(ValueError, match=next(iter(options))):
