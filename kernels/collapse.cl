@@ -115,10 +115,7 @@ __kernel void collapse_costs(__global const float4 *nodes, __global const int *p
         becomes_leaf[node] = 1;
         for (;;) {
             const int p = parent[node];
-            if (p < 0) break;
-            mem_fence(CLK_GLOBAL_MEM_FENCE);
-            if (atomic_inc(&arrivals[p]) == 0) break;  /* sibling not done yet */
-            mem_fence(CLK_GLOBAL_MEM_FENCE);
+            if (p < 0 || !second_arrival(arrivals, p)) break;
             const int left = node_words[8 * p + 3];
             const int right = node_words[8 * p + 7];
             const subtree_t other = load_stats_volatile(stats_words, left == node ? right : left);

@@ -26,6 +26,18 @@ inline int chunk_last(int gid, int per_item, int count) {
     return l < count ? (int)l : count;
 }
 
+/* Bottom-up walks (Karras 2012, section 4): each walk that reaches parent p
+ * bumps p's arrival counter; only the second arrival goes on, knowing that the
+ * sibling's results are written. The fence before the atomic publishes this
+ * walk's stores (release), the fence after it orders the sibling reads that
+ * follow (acquire); OpenCL 1.2 atomics alone do not order plain memory. */
+inline int second_arrival(__global int *arrivals, int p) {
+    mem_fence(CLK_GLOBAL_MEM_FENCE);
+    const int second = atomic_inc(&arrivals[p]) != 0;
+    mem_fence(CLK_GLOBAL_MEM_FENCE);
+    return second;
+}
+
 inline float3 load_vertex(__global const float *vertices, uint v) {
     return vload3(v, vertices);
 }

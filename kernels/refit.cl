@@ -9,11 +9,9 @@
  * on. min and max are exact, so the result does not depend on which walk
  * arrives second: it is bit-identical to a serial refit.
  *
- * Memory ordering: the box is stored, then a global fence, then the atomic
- * increment (release); the walk that wins the counter fences again before it
- * reads the sibling's box through a volatile pointer (acquire), so no cached
- * or reordered value is seen, on PoCL or on a GPU. OpenCL 1.2 atomics alone
- * do not order plain stores.
+ * Memory ordering: see second_arrival() in common.h; the sibling's box is
+ * read through a volatile pointer so that no value cached before the atomic
+ * is used, on PoCL or on a GPU.
  *
  * A work-item walks `per_item` consecutive leaves (one on a GPU). Leaves are
  * leaf_nodes[k] when use_leaf_list, else leaf_first + k (Karras numbering).
@@ -56,10 +54,7 @@ __kernel void refit(__global const float4 *boxes /* lo, hi per triangle (bounds.
         store_box(node_floats, node, lo, hi);
         for (;;) {
             const int p = parent[node];
-            if (p < 0) break;
-            mem_fence(CLK_GLOBAL_MEM_FENCE);
-            if (atomic_inc(&arrivals[p]) == 0) break;  /* sibling not done yet */
-            mem_fence(CLK_GLOBAL_MEM_FENCE);
+            if (p < 0 || !second_arrival(arrivals, p)) break;
             const int left = node_words[8 * p + 3];
             const int sibling = left == node ? node_words[8 * p + 7] : left;
             float3 slo, shi;

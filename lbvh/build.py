@@ -38,7 +38,8 @@ BUILDERS = ("lbvh", "sah")
 
 def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh",
           key_bits: int | str = "auto", device: Any = None,
-          auto_duplicate_fraction: float = AUTO_DUPLICATE_FRACTION, **options: Any) -> BVH:
+          auto_duplicate_fraction: float = AUTO_DUPLICATE_FRACTION, collapse: bool = False,
+          **options: Any) -> BVH:
     """Build a BVH over a triangle mesh: the device LBVH, or the serial SAH reference.
 
     Args:
@@ -51,6 +52,9 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh",
             are duplicates.
         device: a device name (see :mod:`lbvh.device`), a ``pyopencl.Device``, or
             ``None`` for ``$LBVH_DEVICE`` / PoCL's CPU device.
+        collapse: ``"lbvh"`` only: after the build, merge subtrees into leaves where the
+            SAH says testing their triangles is cheaper (:func:`lbvh.collapse.collapse_leaves`,
+            ``options``: ``c_node``, ``c_tri``, ``max_leaf_size``).
 
     Returns:
         :class:`lbvh.BVH` whose buffers stay on the device. ``bvh.report()``
@@ -65,10 +69,15 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh",
     wanted = _key_bits_of(key_bits)
     v, f = as_mesh(vertices, faces)
     if builder == "sah":
+        if collapse:
+            raise ValueError("collapse: only for builder='lbvh' (the SAH builder already makes "
+                             "multi-triangle leaves)")
         from .sah import build_sah
         return build_sah(v, f, device=device, **options)
-    if options:
+    if options and not collapse:
         raise ValueError(f"unknown option(s) for the lbvh builder: {', '.join(sorted(options))}")
+    if collapse:
+        _check_collapse_options(**options)
     ctx = dev.get_context(device)
     t0 = time.perf_counter()
     vbuf, fbuf = dev.to_device(ctx, v), dev.to_device(ctx, f)
@@ -76,7 +85,20 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh",
     upload = time.perf_counter() - t0
     bvh = build_on_device(ctx, v, f, vbuf, fbuf, wanted, auto_duplicate_fraction)
     bvh.build_report.upload_seconds = upload
+    if collapse:
+        from .collapse import collapse_leaves
+        bvh = collapse_leaves(bvh, **options)
     return bvh
+
+
+def _check_collapse_options(c_node: float = 1.0, c_tri: float = 1.0, max_leaf_size: int = 8,
+                            **unknown: Any) -> None:
+    """Reject bad collapse options before anything is built."""
+    from .quality import check_sah_constants
+
+    if unknown:
+        raise ValueError(f"unknown option(s) for the leaf collapse: {', '.join(sorted(unknown))}")
+    check_sah_constants(c_node, c_tri, max_leaf_size)
 
 
 def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl.Buffer,

@@ -151,6 +151,16 @@ class BVH:
         self._host.clear()
         return self
 
+    def leaf_walks(self) -> tuple[cl.Buffer | None, int, int]:
+        """Where bottom-up walks start: ``(device leaf list or None, first leaf, leaf count)``.
+
+        Karras trees have their leaves in the block ``[F-1, 2F-1)`` and no list;
+        other trees list their leaf nodes in an int32 device buffer.
+        """
+        if self._leaf_nodes is None:
+            return None, self.num_prims - 1, self.num_prims
+        return self._leaf_nodes_device(), 0, len(self._leaf_nodes)
+
     def _leaf_nodes_device(self) -> cl.Buffer | None:
         if self._leaf_nodes is None:
             return None

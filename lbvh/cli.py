@@ -49,6 +49,8 @@ def parse_size(text: str) -> tuple[int, int]:
 def _add_build_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--builder", choices=BUILDERS, default="lbvh",
                    help="lbvh: device Karras build (default); sah: serial SAH reference")
+    p.add_argument("--collapse", action="store_true",
+                   help="lbvh only: merge subtrees into leaves where the SAH says so (device pass)")
     p.add_argument("--keys", choices=["auto", "30", "63"], default="auto",
                    help="Morton key width (default: auto, chosen from the scene)")
     p.add_argument("--device", default=None,
@@ -59,7 +61,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     from .scene import load_scene
 
     scene = load_scene(args.scene)
-    bvh = build(scene.vertices, scene.faces, builder=args.builder,
+    bvh = build(scene.vertices, scene.faces, builder=args.builder, collapse=args.collapse,
                           key_bits=args.keys, device=args.device)
     if args.validate:
         bvh.validate()
@@ -96,7 +98,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         camera = frame_bounds(scene.vertices.min(axis=0), scene.vertices.max(axis=0),
                               *(size or DEFAULT_SIZE))
     start = time.perf_counter()
-    bvh = build(scene.vertices, scene.faces, builder=args.builder, key_bits=args.keys,
+    bvh = build(scene.vertices, scene.faces, builder=args.builder, collapse=args.collapse, key_bits=args.keys,
                 device=args.device)
     build_seconds = time.perf_counter() - start
     result = render(bvh, camera, args.mode, ao_samples=args.ao_samples,

@@ -41,18 +41,11 @@ MAX_LEAF_SIZE = 8
 _STATS_DTYPE = np.dtype([("first", "<i4"), ("end", "<i4"), ("count", "<i4"), ("cost", "<f4")])
 
 
-def _leaf_walks(bvh: BVH) -> tuple[cl.Buffer | None, int, int]:
-    """Where the bottom-up walks start: (leaf list or None, first Karras leaf, leaf count)."""
-    if bvh._leaf_nodes is None:  # Karras numbering: leaves are nodes F-1 .. 2F-2
-        return None, bvh.num_prims - 1, bvh.num_prims
-    return bvh._leaf_nodes_device(), 0, len(bvh._leaf_nodes)
-
-
 def _decide(bvh: BVH, c_node: float, c_tri: float, max_leaf_size: int
             ) -> tuple[cl.Buffer, cl.Buffer, list[cl.Event]]:
     """Run collapse_costs: per-node stats (``_STATS_DTYPE``) and becomes_leaf (int32)."""
     ctx, n = bvh.ctx, bvh.num_nodes
-    leaf_list, leaf_first, num_leaves = _leaf_walks(bvh)
+    leaf_list, leaf_first, num_leaves = bvh.leaf_walks()
     arrivals = dev.empty(ctx, 4 * n)
     stats = dev.empty(ctx, _STATS_DTYPE.itemsize * n)
     becomes_leaf = dev.empty(ctx, 4 * n)

@@ -66,6 +66,9 @@ class BuildReport:
             lines.append(f"device time: {self.device_seconds * 1e3:.2f} ms "
                          f"({self.mtris_per_second:.1f} Mtris/s); wall {self.wall_seconds * 1e3:.2f} ms "
                          f"(+ upload {self.upload_seconds * 1e3:.2f} ms)")
+        elif self.wall_seconds:
+            lines.append(f"build time:  {self.wall_seconds * 1e3:.2f} ms on the host"
+                         + (f" (+ upload {self.upload_seconds * 1e3:.2f} ms)" if self.upload_seconds else ""))
         if self.sort_passes is not None:
             lines.append(f"sort passes: {self.sort_passes}")
         if self.peak_device_bytes:

@@ -159,3 +159,14 @@ def test_device_chosen_by_environment_variable():
     env["LBVH_DEVICE"] = "no-such-device-xyz"
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, cwd=REPO)
     assert out.returncode != 0 and "no OpenCL device matches" in out.stderr
+
+
+def test_build_with_leaf_collapse():
+    v, f = shipped_mesh("teapot.obj")
+    plain = lbvh.build(v, f)
+    bvh = lbvh.build(v, f, collapse=True, max_leaf_size=4)
+    bvh.validate()
+    sizes = bvh.prim_range[bvh.is_leaf, 1]
+    assert sizes.max() <= 4 and sizes.sum() == len(f) and bvh.num_nodes < plain.num_nodes
+    assert lbvh.sah_cost(bvh) <= lbvh.sah_cost(plain)
+    assert bvh.builder == "lbvh+collapse"

@@ -39,6 +39,9 @@ def test_faces_missing():
     ({"key_bits": 31}, "key_bits"),
     ({"builder": "octree"}, "builder"),
     ({"bogus": 1}, "unknown option"),
+    ({"collapse": True, "bogus": 1}, "unknown option.*collapse: bogus"),
+    ({"collapse": True, "max_leaf_size": 0}, "max_leaf_size"),
+    ({"builder": "sah", "collapse": True}, "collapse: only for builder='lbvh'"),
 ])
 def test_bad_options(kwargs, message):
     with pytest.raises(ValueError, match=message):
