@@ -1,0 +1,316 @@
+/* Ray traversal of a BVH in the project's layout (docs/layout.md), driven by
+ * lbvh/traverse.py.
+ *
+ * A work-item traces the rays [chunk_first, chunk_last) one after the other
+ * (one ray on a GPU) with an explicit stack, in closest-hit or any-hit mode.
+ *
+ * Compile-time variants (-D), all optional:
+ *   ANY_HIT=1        stop at the first hit in [tmin, tmax] (occlusion)
+ *   COUNTERS=1       write nodes visited and triangles tested per ray
+ *   TRIANGLE_TEST=0  watertight test of Woop, Benthin, Wald 2013 (default)
+ *   TRIANGLE_TEST=1  Moller-Trumbore 1997 (faster, leaks through shared edges)
+ *   STACK_SIZE=n     stack entries; a push beyond n sets FLAG_OVERFLOW and
+ *                    drops that subtree (reported, never silent)
+ *   SLAB_PAD=x       factor on the far distance of a box (Ize 2013)
+ *   NO_FP64=1        leave out the double fallback of the watertight test
+ *
+ * Rays are float8 records (origin.xyz, tmin, direction.xyz, tmax); results are
+ * float4 (t, u, v, as_float(prim)) with prim in the caller's original
+ * numbering, -1 and t = +inf for a miss. The hit point is
+ * (1-u-v)*p0 + u*p1 + v*p2. The host rejects NaN and infinite rays; the loop
+ * is bounded by the stack and by a visit limit of num_nodes, so even a NaN ray
+ * or a cyclic tree terminates.
+ */
+#include "common.h"
+
+#ifndef ANY_HIT
+#define ANY_HIT 0
+#endif
+#ifndef COUNTERS
+#define COUNTERS 0
+#endif
+#define TEST_WATERTIGHT 0
+#define TEST_MOLLER 1
+#ifndef TRIANGLE_TEST
+#define TRIANGLE_TEST TEST_WATERTIGHT
+#endif
+#ifndef STACK_SIZE
+#define STACK_SIZE 64
+#endif
+#ifndef SLAB_PAD
+/* 1 + 2 gamma(3), gamma(n) = n u / (1 - n u), u = 2^-24, rounded up to float. */
+#define SLAB_PAD 0x1.000008p+0f
+#endif
+
+#define FLAG_OVERFLOW 1    /* a push found the stack full: a subtree was skipped */
+#define FLAG_VISIT_LIMIT 2 /* more nodes visited than the tree has: not a tree */
+
+/* The double fallback of the watertight test where the device has doubles
+ * (-DNO_FP64 leaves it out, to test the path of devices without them). */
+#if TRIANGLE_TEST == TEST_WATERTIGHT && defined(cl_khr_fp64) && !defined(NO_FP64)
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#define WATERTIGHT_FP64 1
+#endif
+
+/* The hot loop is written with comparisons instead of fmin/fmax/select/vload3:
+ * PoCL calls those builtins out of line, which cost half the time. */
+
+/* max and min keeping m when x is NaN (m is never NaN): fmax/fmin semantics. */
+inline float max_keep(float x, float m) { return x > m ? x : m; }
+inline float min_keep(float x, float m) { return x < m ? x : m; }
+
+typedef struct {
+    float ox, oy, oz, dx, dy, dz;
+    float ix, iy, iz;   /* 1/d: +-inf for +-0 */
+    /* Offsets (in floats) of the near and far plane of each axis in a node
+     * record: the sign bit of d picks them, so -0.0 counts as negative like
+     * 1/-0 = -inf (Williams et al. 2005; pbrt's dirIsNeg). */
+    int nx, ny, nz, fx, fy, fz;
+    float tmin, tmax;
+    /* Woop 2013, section 3: permutation making kz the dominant axis (kx, ky
+     * swapped when d[kz] < 0 to keep the winding), the origin permuted, and
+     * the shear constants. */
+    int kx, ky, kz;
+    float px, py, pz;
+    float sx, sy, sz;
+} Ray;
+
+inline float axis(float x, float y, float z, int k) { return k == 0 ? x : (k == 1 ? y : z); }
+
+inline Ray make_ray(__global const float *r) {
+    Ray ray;
+    ray.ox = r[0]; ray.oy = r[1]; ray.oz = r[2]; ray.tmin = r[3];
+    ray.dx = r[4]; ray.dy = r[5]; ray.dz = r[6]; ray.tmax = r[7];
+    ray.ix = 1.0f / ray.dx;
+    ray.iy = 1.0f / ray.dy;
+    ray.iz = 1.0f / ray.dz;
+    const int negx = as_int(ray.dx) < 0, negy = as_int(ray.dy) < 0, negz = as_int(ray.dz) < 0;
+    ray.nx = negx ? 4 : 0; ray.fx = 4 - ray.nx;
+    ray.ny = negy ? 5 : 1; ray.fy = 6 - ray.ny;
+    ray.nz = negz ? 6 : 2; ray.fz = 8 - ray.nz;
+    const float ax = fabs(ray.dx), ay = fabs(ray.dy), az = fabs(ray.dz);
+    const int kz = ax >= ay ? (ax >= az ? 0 : 2) : (ay >= az ? 1 : 2);
+    int kx = kz == 2 ? 0 : kz + 1;
+    int ky = kx == 2 ? 0 : kx + 1;
+    const float dz = axis(ray.dx, ray.dy, ray.dz, kz);
+    if (dz < 0.0f) { const int s = kx; kx = ky; ky = s; }
+    ray.kx = kx; ray.ky = ky; ray.kz = kz;
+    ray.px = axis(ray.ox, ray.oy, ray.oz, kx);
+    ray.py = axis(ray.ox, ray.oy, ray.oz, ky);
+    ray.pz = axis(ray.ox, ray.oy, ray.oz, kz);
+    ray.sx = axis(ray.dx, ray.dy, ray.dz, kx) / dz;
+    ray.sy = axis(ray.dx, ray.dy, ray.dz, ky) / dz;
+    ray.sz = 1.0f / dz;
+    return ray;
+}
+
+/* Slab test (Kay-Kajiya) of node `c`, made robust:
+ * - near and far planes picked by the sign bit of d (-0.0 is negative);
+ * - an origin on a slab plane with a zero direction component gives
+ *   0 * inf = NaN on that axis; max_keep/min_keep ignore it, so that axis does
+ *   not bound the ray, which is right: the origin lies on the closed slab;
+ * - a flat box (lower == upper on an axis) is accepted with entry == exit;
+ * - the far distance is multiplied by 1 + 2 gamma(3) (Ize 2013, "Robust BVH
+ *   Ray Traversal", JCGT 2(2)), which covers the rounding of the subtraction,
+ *   the reciprocal and the product, so no box containing a hit is lost.
+ * Returns whether [entry, exit] meets [ray.tmin, limit]; *leave is the box's
+ * own exit distance (unpadded), used to order children of equal entry. */
+inline int slab(__global const float *nf, int c, const Ray *ray, float limit,
+                float *entry, float *leave) {
+    __global const float *box = nf + 8 * c;
+    float t0 = ray->tmin;
+    t0 = max_keep((box[ray->nx] - ray->ox) * ray->ix, t0);
+    t0 = max_keep((box[ray->ny] - ray->oy) * ray->iy, t0);
+    t0 = max_keep((box[ray->nz] - ray->oz) * ray->iz, t0);
+    float t1 = INFINITY;
+    t1 = min_keep((box[ray->fx] - ray->ox) * ray->ix, t1);
+    t1 = min_keep((box[ray->fy] - ray->oy) * ray->iy, t1);
+    t1 = min_keep((box[ray->fz] - ray->oz) * ray->iz, t1);
+    *entry = t0;
+    *leave = t1;
+    return t0 <= min_keep(t1, limit) * SLAB_PAD;
+}
+
+/* Zero-area triangles (repeated or collinear vertices) must never be hit, but
+ * after rounding their projected edge functions can all share a sign. A
+ * triangle is degenerate when |e1 x e2| <= 2^-20 |e1| |e2|, evaluated on the
+ * edges scaled to a largest component of 1 (no overflow or underflow). Called
+ * only for a hit that would be accepted, so it costs nothing on the way. */
+#define DEGENERATE_SINE2 0x1p-40f
+inline float max_abs3(float x, float y, float z) {
+    x = x < 0.0f ? -x : x;
+    y = y < 0.0f ? -y : y;
+    z = z < 0.0f ? -z : z;
+    return x > y ? (x > z ? x : z) : (y > z ? y : z);
+}
+inline int degenerate(__global const float *vertices, int i0, int i1, int i2) {
+    float ax = vertices[i1] - vertices[i0], ay = vertices[i1 + 1] - vertices[i0 + 1];
+    float az = vertices[i1 + 2] - vertices[i0 + 2];
+    float bx = vertices[i2] - vertices[i0], by = vertices[i2 + 1] - vertices[i0 + 1];
+    float bz = vertices[i2 + 2] - vertices[i0 + 2];
+    const float sa = max_abs3(ax, ay, az), sb = max_abs3(bx, by, bz);
+    if (sa == 0.0f || sb == 0.0f) return 1;
+    ax = ax / sa; ay = ay / sa; az = az / sa;
+    bx = bx / sb; by = by / sb; bz = bz / sb;
+    const float nx = ay * bz - az * by, ny = az * bx - ax * bz, nz = ax * by - ay * bx;
+    const float nn = nx * nx + ny * ny + nz * nz;
+    return nn <= DEGENERATE_SINE2 * (ax * ax + ay * ay + az * az) * (bx * bx + by * by + bz * bz);
+}
+
+/* One triangle against the ray; on a hit with tmin <= t <= tmax and t < *best,
+ * updates *best, *bu, *bv and returns 1. Zero-area triangles never hit. */
+#if TRIANGLE_TEST == TEST_WATERTIGHT
+/* Woop, Benthin, Wald 2013, "Watertight Ray/Triangle Intersection", JCGT 2(1):
+ * translate to the origin, permute and shear so that the ray is +z, then 2D
+ * edge functions. An edge shared by two triangles is evaluated from the same
+ * two vertices with the same operations, so a ray cannot slip between them. */
+inline int hit_triangle(__global const float *vertices, int i0, int i1, int i2, const Ray *ray,
+                        float *best, float *bu, float *bv) {
+    const int kx = ray->kx, ky = ray->ky, kz = ray->kz;
+    const float az = vertices[i0 + kz] - ray->pz;
+    const float bz = vertices[i1 + kz] - ray->pz;
+    const float cz = vertices[i2 + kz] - ray->pz;
+    const float ax = (vertices[i0 + kx] - ray->px) - ray->sx * az;
+    const float ay = (vertices[i0 + ky] - ray->py) - ray->sy * az;
+    const float bx = (vertices[i1 + kx] - ray->px) - ray->sx * bz;
+    const float by = (vertices[i1 + ky] - ray->py) - ray->sy * bz;
+    const float cx = (vertices[i2 + kx] - ray->px) - ray->sx * cz;
+    const float cy = (vertices[i2 + ky] - ray->py) - ray->sy * cz;
+    float U = cx * by - cy * bx;
+    float V = ax * cy - ay * cx;
+    float W = bx * ay - by * ax;
+#ifdef WATERTIGHT_FP64
+    /* Section 3.3: an edge function that rounds to zero is recomputed in
+     * double, where products of floats are exact and its sign is right. */
+    if (U == 0.0f || V == 0.0f || W == 0.0f) {
+        U = (float)((double)cx * (double)by - (double)cy * (double)bx);
+        V = (float)((double)ax * (double)cy - (double)ay * (double)cx);
+        W = (float)((double)bx * (double)ay - (double)by * (double)ax);
+    }
+#endif
+    if ((U < 0.0f || V < 0.0f || W < 0.0f) && (U > 0.0f || V > 0.0f || W > 0.0f)) return 0;
+    const float det = U + V + W;
+    if (det == 0.0f) return 0;
+    const float T = U * (ray->sz * az) + V * (ray->sz * bz) + W * (ray->sz * cz);
+    const float t = T / det;
+    if (!(t >= ray->tmin && t <= ray->tmax && t < *best)) return 0;
+    if (degenerate(vertices, i0, i1, i2)) return 0;
+    *best = t;
+    *bu = V / det;
+    *bv = W / det;
+    return 1;
+}
+#else
+/* Moller, Trumbore 1997, "Fast, Minimum Storage Ray/Triangle Intersection". */
+inline int hit_triangle(__global const float *vertices, int i0, int i1, int i2, const Ray *ray,
+                        float *best, float *bu, float *bv) {
+    const float p0x = vertices[i0], p0y = vertices[i0 + 1], p0z = vertices[i0 + 2];
+    const float e1x = vertices[i1] - p0x, e1y = vertices[i1 + 1] - p0y, e1z = vertices[i1 + 2] - p0z;
+    const float e2x = vertices[i2] - p0x, e2y = vertices[i2 + 1] - p0y, e2z = vertices[i2 + 2] - p0z;
+    const float qx = ray->dy * e2z - ray->dz * e2y;   /* P = d x e2 */
+    const float qy = ray->dz * e2x - ray->dx * e2z;
+    const float qz = ray->dx * e2y - ray->dy * e2x;
+    const float det = e1x * qx + e1y * qy + e1z * qz;
+    if (det == 0.0f) return 0;
+    const float inv = 1.0f / det;
+    const float tx = ray->ox - p0x, ty = ray->oy - p0y, tz = ray->oz - p0z;
+    const float u = (tx * qx + ty * qy + tz * qz) * inv;
+    if (!(u >= 0.0f && u <= 1.0f)) return 0;
+    const float rx = ty * e1z - tz * e1y;             /* Q = T x e1 */
+    const float ry = tz * e1x - tx * e1z;
+    const float rz = tx * e1y - ty * e1x;
+    const float v = (ray->dx * rx + ray->dy * ry + ray->dz * rz) * inv;
+    if (!(v >= 0.0f && u + v <= 1.0f)) return 0;
+    const float t = (e2x * rx + e2y * ry + e2z * rz) * inv;
+    if (!(t >= ray->tmin && t <= ray->tmax && t < *best)) return 0;
+    if (degenerate(vertices, i0, i1, i2)) return 0;
+    *best = t;
+    *bu = u;
+    *bv = v;
+    return 1;
+}
+#endif
+
+__kernel void traverse(__global const float4 *nodes, __global const int *prim_order,
+                       __global const float *vertices, __global const uint *faces,
+                       const int root, const int num_nodes,
+                       __global const float8 *rays, __global float4 *hits,
+                       __global int *flags, __global int2 *counters,
+                       const int count, const int per_item) {
+    const int gid = get_global_id(0);
+    const int first = chunk_first(gid, per_item, count);
+    const int last = chunk_last(gid, per_item, count);
+    __global const float *nf = (__global const float *)nodes;
+    __global const int *ni = (__global const int *)nodes;
+    int stack_node[STACK_SIZE];
+    float stack_entry[STACK_SIZE];  /* entry distance, to drop subtrees behind a closer hit */
+
+    for (int i = first; i < last; ++i) {
+        const Ray ray = make_ray((__global const float *)(rays + i));
+        float best = INFINITY, bu = 0.0f, bv = 0.0f;
+        int best_prim = -1, flag = 0, visited = 1, tested = 0;
+        int sp = 0;
+        float entry, leave;
+        int node = root;
+        int go = slab(nf, root, &ray, ray.tmax, &entry, &leave);
+        while (go) {
+            const int a = ni[8 * node + 3], b = ni[8 * node + 7];
+            int next = -1;
+            if (node_is_leaf(b)) {
+                for (int s = a; s < a - b; ++s) {
+                    const int prim = prim_order[s];
+                    ++tested;
+                    if (hit_triangle(vertices, 3 * (int)faces[3 * prim], 3 * (int)faces[3 * prim + 1],
+                                     3 * (int)faces[3 * prim + 2], &ray, &best, &bu, &bv)) {
+                        best_prim = prim;
+#if ANY_HIT
+                        break;
+#endif
+                    }
+                }
+#if ANY_HIT
+                if (best_prim >= 0) break;
+#endif
+            } else {
+                const float limit = min_keep(best, ray.tmax);
+                float e0, x0, e1, x1;
+                const int h0 = slab(nf, a, &ray, limit, &e0, &x0);
+                const int h1 = slab(nf, b, &ray, limit, &e1, &x1);
+                if (h0 && h1) {
+                    /* Nearer entry first; equal entries: nearer exit; else the right child. */
+                    const int left_first = e0 < e1 || (e0 == e1 && x0 < x1);
+                    next = left_first ? a : b;
+                    if (sp < STACK_SIZE) {
+                        stack_node[sp] = left_first ? b : a;
+                        stack_entry[sp] = left_first ? e1 : e0;
+                        ++sp;
+                    } else {
+                        flag |= FLAG_OVERFLOW;
+                    }
+                } else if (h0) {
+                    next = a;
+                } else if (h1) {
+                    next = b;
+                }
+            }
+            if (next < 0) {
+                /* Pop, dropping subtrees whose entry lies beyond the closest hit. */
+                const float cut = min_keep(best, ray.tmax) * SLAB_PAD;
+                while (sp > 0 && stack_entry[sp - 1] > cut) --sp;
+                if (sp == 0) break;
+                next = stack_node[--sp];
+            }
+            node = next;
+            if (++visited > num_nodes) {
+                flag |= FLAG_VISIT_LIMIT;
+                break;
+            }
+        }
+        /* + 0.0f turns a t of -0.0 (T = -0) into +0.0 */
+        hits[i] = (float4)(best + 0.0f, bu, bv, as_float(best_prim));
+        flags[i] = flag;
+#if COUNTERS
+        counters[i] = (int2)(visited, tested);
+#endif
+    }
+}

@@ -1,0 +1,276 @@
+"""Brute-force ray/triangle intersection in numpy: the exact oracle of the ray queries.
+
+Every ray is tested against every triangle with the watertight test of Woop,
+Benthin and Wald (JCGT 2013), written once for two precisions:
+
+``dtype=np.float64`` (the oracle)
+    Coordinates are the caller's float32 values, the arithmetic is float64:
+    ``p - o`` is exact, each later step rounds to 53 bits, so ``t`` and the
+    barycentrics carry a relative error of a few 1e-16 times the conditioning
+    of the hit (``1 / cos`` of the angle between ray and triangle plane); hit
+    or miss can differ from exact arithmetic only for rays within about 1e-15
+    (relative to the coordinates) of a triangle's edge.
+
+``dtype=np.float32`` (the kernel's twin)
+    The same operations in the same order as ``kernels/traverse.cl`` with its
+    default watertight test (including the float64 recomputation of an edge
+    function that rounds to zero): for the triangle the kernel reports, its
+    ``t, u, v`` equal the twin's bit for bit on a device with correctly
+    rounded division.
+
+Zero-area triangles are never hit, in both precisions and in the kernel: a
+triangle is degenerate when ``|e1 x e2| <= 2^-20 |e1| |e2|`` (see
+:func:`degenerate_triangles`), which catches repeated vertices and vertices
+collinear up to rounding; the Woop test alone would let rays through the
+line of a collinear triangle hit it.
+
+By default (``cull=True``) ray-triangle pairs whose triangle lies in a block
+of 16 triangles whose box (padded by ``1e-6`` of the scene's scale) the ray
+cannot reach are skipped before the exact test; the padding is a million
+times the float64 rounding of that box test, so culling never changes a
+result (``cull=False`` tests every pair, to check exactly that). Pairs are
+processed in chunks of ``max_pairs`` to bound memory.
+
+Both return :class:`lbvh.traverse.Hits`; among triangles hit at exactly the
+same ``t`` the lowest triangle index wins.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .geometry import as_faces, as_vertices
+from .traverse import Hits, pack_rays
+
+#: Sine of the angle between two edges below which the oracle calls a triangle degenerate.
+DEGENERATE_SINE = 2.0 ** -20
+#: Triangles per culling block, and the blocks' padding relative to the scene's scale.
+BLOCK_SIZE = 16
+BLOCK_PADDING = 1e-6
+
+
+def woop_axes(directions: np.ndarray) -> np.ndarray:
+    """``int64 (N, 3)`` axis permutation (kx, ky, kz) of each ray, as the kernel picks it.
+
+    ``kz`` is the axis of the largest ``|d|`` (ties resolved in the kernel's
+    comparison order); ``kx, ky`` follow cyclically and are swapped when
+    ``d[kz] < 0`` so that the triangle's winding is kept.
+    """
+    ad = np.abs(directions)
+    kz = np.where(ad[:, 0] >= ad[:, 1], np.where(ad[:, 0] >= ad[:, 2], 0, 2),
+                  np.where(ad[:, 1] >= ad[:, 2], 1, 2))
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+    swap = directions[np.arange(len(directions)), kz] < 0
+    kx, ky = np.where(swap, ky, kx), np.where(swap, kx, ky)
+    return np.stack([kx, ky, kz], axis=1).astype(np.int64)
+
+
+def degenerate_triangles(vertices: np.ndarray, faces: np.ndarray, dtype=np.float64) -> np.ndarray:
+    """``bool (F,)``: zero-area triangles, as the kernel decides it (in ``dtype``).
+
+    ``|e1 x e2| <= 2^-20 |e1| |e2|`` with ``e1 = p1 - p0``, ``e2 = p2 - p0``
+    each scaled to a largest component of 1; an edge of length zero is
+    degenerate. Same operations, same order as ``degenerate()`` in the kernel.
+    """
+    p = vertices[faces].astype(dtype)
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    s1, s2 = np.abs(e1).max(axis=1), np.abs(e2).max(axis=1)
+    zero = (s1 == 0) | (s2 == 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a, b = e1 / s1[:, None], e2 / s2[:, None]
+        n = np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                      a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+        nn = (n[:, 0] * n[:, 0] + n[:, 1] * n[:, 1]) + n[:, 2] * n[:, 2]
+        aa = (a[:, 0] * a[:, 0] + a[:, 1] * a[:, 1]) + a[:, 2] * a[:, 2]
+        bb = (b[:, 0] * b[:, 0] + b[:, 1] * b[:, 1]) + b[:, 2] * b[:, 2]
+        return zero | (nn <= dtype(DEGENERATE_SINE) ** 2 * aa * bb)
+
+
+class _Rays:
+    """Validated rays with the per-ray constants of the watertight test."""
+
+    def __init__(self, origins: Any, directions: Any, tmin: Any, tmax: Any, dtype) -> None:
+        packed = pack_rays(origins, directions, tmin, tmax)
+        self.count = len(packed)
+        self.origin = packed["origin"]
+        self.direction = packed["direction"]
+        self.tmin = packed["tmin"]
+        self.tmax = packed["tmax"]
+        self.axes = woop_axes(self.direction)
+        rows = np.arange(self.count)[:, None]
+        d = self.direction[rows, self.axes].astype(dtype)
+        self.o_perm = self.origin[rows, self.axes].astype(dtype)
+        # Shear constants as the kernel computes them, in the chosen precision.
+        with np.errstate(divide="ignore"):
+            self.shear = np.stack([d[:, 0] / d[:, 2], d[:, 1] / d[:, 2], dtype(1) / d[:, 2]], axis=1)
+
+
+def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: np.ndarray,
+               skip: np.ndarray, dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Woop 2013 for the pairs (``ray[k]``, ``tri[k]``): ``t, u, v`` per pair, ``t = inf`` on a miss.
+
+    tmin/tmax are not applied here. Operation order follows kernels/traverse.cl.
+    """
+    axes = rays.axes[ray]
+    o = rays.o_perm[ray]
+    sx, sy, sz = (rays.shear[ray, k] for k in range(3))
+    x, y, z = [], [], []
+    for corner in range(3):
+        vid = f[tri, corner]
+        rel = [v[vid, axes[:, k]].astype(dtype) - o[:, k] for k in range(3)]
+        z.append(rel[2])
+        x.append(rel[0] - sx * rel[2])
+        y.append(rel[1] - sy * rel[2])
+    (ax, bx, cx), (ay, by, cy) = x, y
+    U = cx * by - cy * bx
+    V = ax * cy - ay * cx
+    W = bx * ay - by * ax
+    if dtype == np.float32:
+        # The kernel recomputes in double when an edge function rounds to zero.
+        redo = (U == 0) | (V == 0) | (W == 0)
+        if redo.any():
+            d = [q[redo].astype(np.float64) for q in (ax, ay, bx, by, cx, cy)]
+            U[redo] = (d[4] * d[3] - d[5] * d[2]).astype(np.float32)
+            V[redo] = (d[0] * d[5] - d[1] * d[4]).astype(np.float32)
+            W[redo] = (d[2] * d[1] - d[3] * d[0]).astype(np.float32)
+    inside = ~(((U < 0) | (V < 0) | (W < 0)) & ((U > 0) | (V > 0) | (W > 0)))
+    det = U + V + W
+    inside &= (det != 0) & ~skip[tri]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        T = U * (sz * z[0]) + V * (sz * z[1]) + W * (sz * z[2])
+        t = T / det
+        bu = V / det
+        bv = W / det
+    return np.where(inside, t, np.inf), bu, bv
+
+
+def _blocks(v: np.ndarray, f: np.ndarray, pad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Triangles in spatially coherent blocks: (order, block lower, block upper), float64 boxes."""
+    p = v.astype(np.float64)[f]
+    lo, hi = p.min(axis=1), p.max(axis=1)
+    centre = 0.5 * (lo + hi)
+    c_lo, c_hi = centre.min(axis=0), centre.max(axis=0)
+    extent = np.where(c_hi > c_lo, c_hi - c_lo, 1.0)
+    cell = np.minimum(((centre - c_lo) / extent * 1024).astype(np.int64), 1023)
+    order = np.argsort(_interleave(cell), kind="stable")
+    starts = np.arange(0, len(f), BLOCK_SIZE)
+    return (order, np.minimum.reduceat(lo[order], starts) - pad,
+            np.maximum.reduceat(hi[order], starts) + pad)
+
+
+def _interleave(cell: np.ndarray) -> np.ndarray:
+    """Morton order key of 10-bit cell coordinates (only used to group nearby triangles)."""
+    key = np.zeros(len(cell), np.int64)
+    for bit in range(10):
+        for axis in range(3):
+            key |= ((cell[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return key
+
+
+def _reachable_blocks(rays: _Rays, idx: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """``bool (len(idx), B)``: whether each ray's [tmin, tmax] meets each padded block box.
+
+    Slab test in float64 with the near plane picked by the sign bit (so -0.0 is
+    negative) and fmax/fmin ignoring the NaN of an origin on a plane with a
+    zero direction component.
+    """
+    o = rays.origin[idx].astype(np.float64)
+    d = rays.direction[idx].astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        neg = np.signbit(d)
+        tn = np.full((len(idx), len(lo)), -np.inf)
+        tf = np.full((len(idx), len(lo)), np.inf)
+        for k in range(3):
+            near = np.where(neg[:, k:k + 1], hi[None, :, k], lo[None, :, k])
+            far = np.where(neg[:, k:k + 1], lo[None, :, k], hi[None, :, k])
+            tn = np.fmax(tn, (near - o[:, k:k + 1]) * inv[:, k:k + 1])
+            tf = np.fmin(tf, (far - o[:, k:k + 1]) * inv[:, k:k + 1])
+    return (tn <= tf) & (tf >= rays.tmin[idx, None]) & (tn <= rays.tmax[idx, None])
+
+
+def _candidate_pairs(rays: _Rays, num_tris: int, blocks, max_pairs: int):
+    """Yield (ray, tri) index arrays of at most about ``max_pairs`` pairs covering every
+    pair that is not culled."""
+    if blocks is None:
+        per = max(1, max_pairs // num_tris)
+        for start in range(0, rays.count, per):
+            r = np.arange(start, min(rays.count, start + per))
+            yield np.repeat(r, num_tris), np.tile(np.arange(num_tris), len(r))
+        return
+    order, lo, hi = blocks
+    per = max(1, max_pairs // max(len(lo), BLOCK_SIZE))
+    for start in range(0, rays.count, per):
+        idx = np.arange(start, min(rays.count, start + per))
+        r, b = np.nonzero(_reachable_blocks(rays, idx, lo, hi))
+        ray = np.repeat(idx[r], BLOCK_SIZE)
+        slot = (b[:, None] * BLOCK_SIZE + np.arange(BLOCK_SIZE)).ravel()
+        keep = slot < num_tris
+        ray, slot = ray[keep], slot[keep]
+        for s in range(0, len(ray), max_pairs):
+            yield ray[s:s + max_pairs], order[slot[s:s + max_pairs]]
+
+
+def brute_force(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: Any = 0.0,
+                tmax: Any = np.inf, *, dtype=np.float64, cull: bool = True,
+                max_pairs: int = 1 << 18) -> Hits:
+    """Closest hit of every ray against every triangle (see the module docstring).
+
+    Args:
+        vertices: ``(V, 3)``, faces: ``(F, 3)``: the mesh (validated like the builder's input).
+        origins, directions, tmin, tmax: rays as for :func:`lbvh.traverse.intersect`
+            (same validation, same float32 conversion).
+        dtype: ``np.float64`` for the oracle, ``np.float32`` for the kernel's twin.
+        cull: skip pairs whose triangle's block the ray cannot reach (never changes results).
+        max_pairs: ray-triangle pairs per numpy step (about ``400 * max_pairs`` bytes).
+
+    Returns:
+        :class:`lbvh.traverse.Hits`, float32 fields (the oracle's float64 ``t, u, v``
+        rounded to nearest), ``overflow`` all ``False``.
+    """
+    dtype = np.dtype(dtype).type
+    if dtype not in (np.float32, np.float64):
+        raise ValueError(f"dtype: {dtype}; expected float32 or float64")
+    v = as_vertices(vertices)
+    f = as_faces(faces, len(v)).astype(np.int64)
+    rays = _Rays(origins, directions, tmin, tmax, dtype)
+    skip = degenerate_triangles(v, f, dtype)
+    blocks = None
+    if cull:
+        scale = max(float(np.abs(v).max()), float(np.abs(rays.origin).max(initial=0.0)), 1e-30)
+        blocks = _blocks(v, f, BLOCK_PADDING * scale)
+    found = []
+    for ray, tri in _candidate_pairs(rays, len(f), blocks, max_pairs):
+        t, bu, bv = _pair_hits(v, f, rays, ray, tri, skip, dtype)
+        ok = (t >= rays.tmin[ray]) & (t <= rays.tmax[ray]) & (t < np.inf)
+        found.append((ray[ok], tri[ok], t[ok], bu[ok], bv[ok]))
+    n = rays.count
+    out = Hits(t=np.full(n, np.inf, np.float32), prim=np.full(n, -1, np.int32),
+               u=np.zeros(n, np.float32), v=np.zeros(n, np.float32),
+               overflow=np.zeros(n, bool), overflow_count=0)
+    if found:
+        ray, tri, t, bu, bv = (np.concatenate(cols) for cols in zip(*found))
+        order = np.lexsort((tri, t, ray))            # by ray, then t, then triangle index
+        first = order[np.unique(ray[order], return_index=True)[1]]
+        r = ray[first]
+        # + 0 turns -0.0 into +0.0, as the kernel does
+        out.t[r], out.prim[r], out.u[r], out.v[r] = t[first] + 0, tri[first], bu[first], bv[first]
+    return out
+
+
+def hits_on(vertices: Any, faces: Any, origins: Any, directions: Any, prims: Any,
+            dtype=np.float64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``t, u, v`` of ray ``i`` against triangle ``prims[i]`` (tmin/tmax ignored).
+
+    ``t`` is ``inf`` where the ray misses that triangle (or it is degenerate).
+    Used to judge ties: two triangles hit at the same distance.
+    """
+    dtype = np.dtype(dtype).type
+    v = as_vertices(vertices)
+    f = as_faces(faces, len(v)).astype(np.int64)
+    rays = _Rays(origins, directions, 0.0, np.inf, dtype)
+    prims = np.asarray(prims, np.int64)
+    skip = degenerate_triangles(v, f, dtype)
+    return _pair_hits(v, f, rays, np.arange(rays.count), prims, skip, dtype)
