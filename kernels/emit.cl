@@ -25,9 +25,9 @@ typedef ulong key_t;
 typedef uint key_t;
 #endif
 
-inline int common_prefix(__global const key_t *keys, int n, int i, int j) {
-    if (j < 0 || j >= n) return -1;
-    key_t ki = keys[i], kj = keys[j];
+inline int common_prefix(__global const key_t *keys, int n, key_t ki, int i, int j) {
+    if ((uint)j >= (uint)n) return -1;  /* j < 0 or j >= n */
+    const key_t kj = keys[j];
     if (ki != kj) return (int)clz(ki ^ kj);
     return KEY_BITS + (int)clz((uint)(i ^ j));
 }
@@ -37,26 +37,37 @@ inline void set_children(__global int *node_words, int node, int a, int b) {
     node_words[8 * node + 7] = b;  /* upper.w */
 }
 
+/* Figure 4 of Karras 2012, with the prefix lengths the figure computes twice
+ * not evaluated again (same tree, about a quarter fewer instructions):
+ * delta_min is one of the two neighbours' prefixes; the first step of the
+ * binary search for l always succeeds (the doubling passed lmax/2); a range
+ * of length 1 needs no split search (its split is 0). */
 inline void emit_internal(__global const key_t *keys, int n, int i,
                           __global int *node_words, __global int *parent) {
-    /* Direction of the range from the neighbouring prefixes. */
-    const int d = common_prefix(keys, n, i, i + 1) - common_prefix(keys, n, i, i - 1) >= 0 ? 1 : -1;
-    const int delta_min = common_prefix(keys, n, i, i - d);
+    const key_t ki = keys[i];
+    const int up = common_prefix(keys, n, ki, i, i + 1);
+    const int down = common_prefix(keys, n, ki, i, i - 1);
+    /* Direction of the range: towards the neighbour sharing the longer prefix
+     * (the two are never equal for distinct keys.index). */
+    const int d = up > down ? 1 : -1;
+    const int delta_min = d > 0 ? down : up;
     /* Upper bound on the range length by doubling, then the exact length. */
     int lmax = 2;
-    while (common_prefix(keys, n, i, i + lmax * d) > delta_min) lmax *= 2;
-    int l = 0;
-    for (int t = lmax / 2; t >= 1; t /= 2)
-        if (common_prefix(keys, n, i, i + (l + t) * d) > delta_min) l += t;
+    while (common_prefix(keys, n, ki, i, i + lmax * d) > delta_min) lmax *= 2;
+    int l = lmax / 2;
+    for (int t = lmax / 4; t >= 1; t /= 2)
+        if (common_prefix(keys, n, ki, i, i + (l + t) * d) > delta_min) l += t;
     const int j = i + l * d;
     /* Split: the highest position where the range's common prefix grows. */
-    const int delta_node = common_prefix(keys, n, i, j);
     int s = 0;
-    int t = l;
-    do {
-        t = (t + 1) / 2;
-        if (common_prefix(keys, n, i, i + (s + t) * d) > delta_node) s += t;
-    } while (t > 1);
+    if (l > 1) {
+        const int delta_node = common_prefix(keys, n, ki, i, j);
+        int t = l;
+        do {
+            t = (t + 1) / 2;
+            if (common_prefix(keys, n, ki, i, i + (s + t) * d) > delta_node) s += t;
+        } while (t > 1);
+    }
     const int gamma = i + s * d + min(d, 0);
     const int left = min(i, j) == gamma ? (n - 1) + gamma : gamma;
     const int right = max(i, j) == gamma + 1 ? (n - 1) + gamma + 1 : gamma + 1;
