@@ -1,0 +1,946 @@
+#!/usr/bin/env python
+"""Every builder on every scene: which BVH is best, and for how many rays? (issue 4)
+
+    .venv/bin/python bench/bench_builders.py [--quick] [--scenes bunny,sponza ...]
+        [--rays 512x384] [--repeats 3] [--out bench/out] [--no-peers]
+
+For each (scene, builder) it measures, in one run (builds, then renders, go in
+rounds that run every builder once, so that the machine's noise hits all alike):
+
+* the build: wall time from host arrays to a tree on the device (mesh
+  validation, upload and, for the SAH reference, the host build and the tree
+  upload included), median of ``--repeats`` builds; a builder stops repeating
+  once its builds have taken ``--build-budget`` seconds (the serial SAH on 1M
+  triangles is built once);
+* the render: closest-hit traversal of one fixed set of primary rays (one per
+  pixel of the scene's camera from ``bench/cameras.json``), median wall time
+  of ``lbvh.traverse.intersect`` (ray packing, transfers and read-back
+  included, counters off), hence rays per second;
+* the tree: SAH cost normalised by the root area (``lbvh.quality.sah_cost``,
+  C_node = C_tri = 1) and its ratio to the serial SAH tree's; depth, nodes,
+  leaves, memory; the traversal counters of the same rays: mean nodes visited
+  and triangles tested per ray, and their sum relative to the SAH tree's;
+* hit agreement with the reference (the SAH tree's hits, same kernel): the
+  fraction of rays with the same hit or miss, the same primitive and ``t``
+  within :func:`t_bound`; ``with ties`` also accepts another primitive at
+  ``t`` within the bound (two triangles meeting the ray at one point);
+* break-even ray counts: ``build_a + n cost_a = build_b + n cost_b``, against
+  the fastest build of the scene and against the SAH reference, and the lower
+  envelope ("which builder for how many rays") over all builders.
+
+Builders: the device LBVH with 30-bit, 63-bit and automatic Morton keys, each
+without and with the SAH leaf collapse (``max_leaf_size`` 8), the serial SAH
+reference, and as peers when installed Embree (embreex) and warp-lang's CPU
+mesh constructors. The peers' trees are not visible: they get a build time, a
+render time through their own traversal, and hit agreement, no tree figures.
+Embree's build is the scene commit (the copy into its scene is reported as
+``setup``); warp traces with ``wp.mesh_query_ray`` in a CPU kernel (one thread).
+
+Outputs in ``--out``: ``bench_builders.json`` (every figure, the machine and
+the OpenCL device), ``bench_builders.md`` (also printed), ``bench_builders.png``
+(speed against error, needs matplotlib) and ``views/<scene>.png`` (what the
+camera sees). Progress goes to stderr.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import datetime
+import json
+import math
+import os
+import platform
+import statistics
+import sys
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pyopencl as cl
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+import meshes  # noqa: E402  (bench/ is not a package)
+from bench_build import cpu_model  # noqa: E402
+
+import lbvh  # noqa: E402
+from lbvh import device as dev  # noqa: E402
+from lbvh.camera import Camera  # noqa: E402
+from lbvh.image import write_image  # noqa: E402
+from lbvh.quality import tree_quality  # noqa: E402
+from lbvh.render import display, shade_primary  # noqa: E402
+from lbvh.scene import load_mesh  # noqa: E402
+from lbvh.traverse import intersect  # noqa: E402
+
+REPO = HERE.parent
+SHIPPED_SCENES = REPO / "scenes"
+SHARED_SCENES = REPO.parent / "shared" / "scenes"
+CAMERAS = HERE / "cameras.json"
+
+#: Scenes read from files: name -> (folder, file).
+FILE_SCENES = {
+    "teapot": (SHIPPED_SCENES, "teapot.obj"),
+    "suzanne": (SHIPPED_SCENES, "suzanne.obj"),
+    "bunny": (SHARED_SCENES, "stanford-bunny.obj"),
+    "sponza": (SHARED_SCENES, "crytek_sponza.obj"),
+    "sibenik": (SHARED_SCENES, "sibenik.obj"),
+    "conference": (SHARED_SCENES, "conference.obj"),
+}
+#: Generated scenes (bench/meshes.py), at least 1M triangles each.
+GENERATED_SCENES: dict[str, Callable[[], tuple[np.ndarray, np.ndarray]]] = {
+    "soup-1m": lambda: meshes.soup(1_000_000, seed=0),
+    "terrain-1m": lambda: meshes.terrain(1_002_528, seed=0),   # 2 * 708^2 triangles
+}
+FULL_SCENES = ("bunny", "sponza", "sibenik", "conference", "soup-1m", "terrain-1m")
+QUICK_SCENES = ("teapot",)
+
+FULL_RAYS = (512, 384)
+QUICK_RAYS = (128, 96)
+#: Ray count of the "build + render" axis of the chart: ten 1-megapixel frames.
+CHART_RAYS = 10_000_000
+
+C_NODE = 1.0
+C_TRI = 1.0
+MAX_LEAF_SIZE = 8
+REFERENCE = "sah"
+#: Cost constants of the collapse and of the SAH reference (the same for both).
+SAH_OPTIONS = {"c_node": C_NODE, "c_tri": C_TRI, "max_leaf_size": MAX_LEAF_SIZE}
+
+#: t bound of the agreement test (as in tests/test_traverse.py): with u = 2^-24,
+#: |t - t_ref| <= T_BOUND_ULPS u (t_ref + s) / max(|cos a|, COS_FLOOR), where s is
+#: the size of the coordinates the float32 test subtracts (scene extent plus the
+#: largest origin component, over |d|) and a the angle between ray and normal.
+T_BOUND_ULPS = 16
+COS_FLOOR = 1e-3
+UNIT_ROUNDOFF = 2.0 ** -24
+
+
+# -- builders ---------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Variant:
+    """One builder configuration: ``family`` is ``lbvh`` or ``sah`` (our trees,
+    traced by our kernel), ``embree`` or ``warp`` (peers)."""
+    name: str
+    family: str
+    options: dict = field(default_factory=dict, hash=False)
+
+    @property
+    def ours(self) -> bool:
+        return self.family in ("lbvh", "sah")
+
+
+def our_variants() -> list[Variant]:
+    """The device LBVH (3 key widths x with/without collapse) and the SAH reference."""
+    out = []
+    for bits in (30, 63, "auto"):
+        out.append(Variant(f"lbvh-{bits}", "lbvh", {"key_bits": bits}))
+        out.append(Variant(f"lbvh-{bits}+collapse", "lbvh", {"key_bits": bits, "collapse": True,
+                                                              **SAH_OPTIONS}))
+    out.append(Variant(REFERENCE, "sah", {"builder": "sah", **SAH_OPTIONS}))
+    return out
+
+
+def build_tree(variant: Variant, vertices: np.ndarray, faces: np.ndarray, ctx: dev.Context) -> lbvh.BVH:
+    """Build one of our trees on ``ctx``."""
+    return lbvh.build(vertices, faces, device=ctx, **variant.options)
+
+
+class Embree:
+    """Embree 4 through embreex: the build is the scene commit, run by the first query."""
+
+    def __init__(self) -> None:
+        from embreex import mesh_construction, rtcore_scene
+        self.rtcs, self.mc = rtcore_scene, mesh_construction
+        import embreex
+        self.version = getattr(embreex, "__version__", "installed")
+
+    def variants(self) -> list[Variant]:
+        return [Variant("embree", "embree")]
+
+    def build(self, variant: Variant, vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float, Any]:
+        """``(setup seconds, build seconds, scene)``."""
+        faces_i32 = faces.astype(np.int32)
+        t0 = time.perf_counter()
+        scene = self.rtcs.EmbreeScene()
+        mesh = self.mc.TriangleMesh(scene, vertices, faces_i32)
+        t1 = time.perf_counter()
+        scene.run(np.zeros((1, 3), np.float32), np.float32([[0.0, 0.0, 1.0]]))   # commit = build
+        t2 = time.perf_counter()
+        return t1 - t0, t2 - t1, (scene, mesh)
+
+    def trace(self, built: Any, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Closest hits ``(t float32, prim int32)``, ``inf`` / ``-1`` on a miss."""
+        out = built[0].run(origins, directions, output=1)
+        prim = out["primID"].astype(np.int32)
+        t = np.where(prim >= 0, out["tfar"], np.inf).astype(np.float32)
+        return t, prim
+
+
+class Warp:
+    """warp-lang's ``wp.Mesh`` on the CPU, one variant per BVH constructor."""
+
+    CONSTRUCTORS = ("sah", "median", "cubql")
+
+    def __init__(self) -> None:
+        import warp as wp
+        wp.config.quiet = True
+        with contextlib.redirect_stdout(sys.stderr):   # keep stdout pure Markdown
+            wp.init()
+        self.wp = wp
+        self.version = wp.__version__
+        self._kernel = None
+
+    def variants(self) -> list[Variant]:
+        return [Variant(f"warp-{c}", "warp", {"bvh_constructor": c}) for c in self.CONSTRUCTORS]
+
+    def build(self, variant: Variant, vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float, Any]:
+        wp = self.wp
+        t0 = time.perf_counter()
+        points = wp.array(vertices, dtype=wp.vec3, device="cpu")
+        indices = wp.array(faces.astype(np.int32).ravel(), dtype=wp.int32, device="cpu")
+        t1 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")   # a silent fallback to another constructor is a failure
+            mesh = wp.Mesh(points, indices, bvh_constructor=variant.options["bvh_constructor"])
+        t2 = time.perf_counter()
+        return t1 - t0, t2 - t1, mesh
+
+    def kernel(self):
+        """The ray kernel, compiled on first use (warp caches it on disk)."""
+        if self._kernel is None:
+            wp = self.wp
+
+            @wp.kernel
+            def closest_hit(mesh: wp.uint64, origins: wp.array(dtype=wp.vec3),
+                            directions: wp.array(dtype=wp.vec3), t_out: wp.array(dtype=float),
+                            prim_out: wp.array(dtype=int)):
+                i = wp.tid()
+                q = wp.mesh_query_ray(mesh, origins[i], directions[i], 1.0e30)
+                if q.result:
+                    t_out[i] = q.t
+                    prim_out[i] = q.face
+                else:
+                    t_out[i] = wp.inf
+                    prim_out[i] = -1
+
+            self._kernel = closest_hit
+        return self._kernel
+
+    def trace(self, mesh: Any, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        wp = self.wp
+        n = len(origins)
+        t = wp.empty(n, dtype=float, device="cpu")
+        prim = wp.empty(n, dtype=int, device="cpu")
+        with contextlib.redirect_stdout(sys.stderr):   # warp reports module loads on stdout
+            wp.launch(self.kernel(), dim=n, device="cpu",
+                      inputs=[mesh.id, wp.array(origins, dtype=wp.vec3, device="cpu"),
+                              wp.array(directions, dtype=wp.vec3, device="cpu"), t, prim])
+            wp.synchronize()
+        return t.numpy().astype(np.float32), prim.numpy().astype(np.int32)
+
+
+def load_peers(enabled: bool) -> tuple[dict[str, Any], dict[str, str]]:
+    """Importable peers ``{family: peer}`` and a status line for each."""
+    peers, status = {}, {}
+    for family, cls in (("embree", Embree), ("warp", Warp)):
+        if not enabled:
+            status[family] = "disabled (--no-peers)"
+            continue
+        try:
+            peers[family] = cls()
+            status[family] = f"{family} {peers[family].version}"
+        except ImportError as exc:
+            status[family] = f"not installed ({exc})"
+    return peers, status
+
+
+# -- scenes and rays ----------------------------------------------------------------
+
+@dataclass
+class Scene:
+    name: str
+    source: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    camera: Camera
+
+
+def load_cameras(path: Path = CAMERAS) -> dict[str, dict]:
+    data = json.loads(Path(path).read_text())
+    return {k: v for k, v in data.items() if not k.startswith("_")}
+
+
+def known_scenes() -> list[str]:
+    return [*FILE_SCENES, *GENERATED_SCENES]
+
+
+def load_bench_scene(name: str, size: tuple[int, int], cameras: dict[str, dict],
+                     shared: Path = SHARED_SCENES) -> Scene | str:
+    """The scene and its camera at ``size = (width, height)``, or why it is skipped."""
+    if name not in cameras:
+        return f"no camera for {name!r} in {CAMERAS.name}"
+    camera = Camera.from_dict(cameras[name], size=size)
+    if name in GENERATED_SCENES:
+        v, f = GENERATED_SCENES[name]()
+        return Scene(name, "bench/meshes.py", v, f, camera)
+    folder, filename = FILE_SCENES[name]
+    if folder == SHARED_SCENES:
+        folder = shared
+    path = folder / filename
+    if not path.is_file():
+        return f"{path} not found"
+    v, f = load_mesh(path)
+    return Scene(name, str(path), v, f, camera)
+
+
+# -- hits ------------------------------------------------------------------------
+
+def t_bound(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarray, directions: np.ndarray,
+            t_ref: np.ndarray, prim_ref: np.ndarray) -> np.ndarray:
+    """Per-ray bound ``float64 (N,)`` on ``|t - t_ref|`` (formula at :data:`T_BOUND_ULPS`);
+    ``prim_ref`` is the reference triangle (``-1`` on a miss: the bound is then unused)."""
+    d = directions.astype(np.float64)
+    dn = np.linalg.norm(d, axis=1)
+    extent = float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
+    s = (extent + np.abs(origins).max(axis=1)) / dn
+    tri = vertices[faces[np.maximum(prim_ref, 0)]].astype(np.float64)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nn = np.linalg.norm(normal, axis=1)
+    cos = np.abs((normal * d).sum(axis=1)) / np.maximum(nn * dn, 1e-300)
+    t = np.where(np.isfinite(t_ref), t_ref, 0.0)
+    return T_BOUND_ULPS * UNIT_ROUNDOFF * (t + s) / np.maximum(cos, COS_FLOOR)
+
+
+def agreement(t: np.ndarray, prim: np.ndarray, t_ref: np.ndarray, prim_ref: np.ndarray,
+              bound: np.ndarray) -> dict:
+    """How far a ray query's closest hits agree with the reference's (module docstring)."""
+    hit, hit_ref = prim >= 0, prim_ref >= 0
+    same_status = hit == hit_ref
+    both = hit & hit_ref
+    err = np.zeros(len(t))
+    err[both] = np.abs(t[both].astype(np.float64) - t_ref[both])
+    t_ok = ~both | (err <= bound)
+    same_prim = prim == prim_ref
+    strict = same_status & t_ok & (~both | same_prim)
+    with_ties = same_status & t_ok
+    n = max(len(t), 1)
+    worst = float((err[both] / bound[both]).max()) if both.any() else 0.0
+    return {"fraction": float(strict.sum() / n), "fraction_with_ties": float(with_ties.sum() / n),
+            "hit_miss_differ": int((~same_status).sum()),
+            "ties": int((both & ~same_prim & t_ok).sum()),
+            "t_out_of_bound": int((both & ~t_ok).sum()), "max_t_error_over_bound": worst}
+
+
+def save_view(path: Path, scene: Scene, directions: np.ndarray, t: np.ndarray, prim: np.ndarray) -> None:
+    """What the camera sees (headlight shading of the reference hits), for choosing cameras."""
+    image = shade_primary("diffuse", t, prim, directions, scene.vertices, scene.faces,
+                          scene.camera.width, scene.camera.height)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_image(path, display("diffuse", image))
+
+
+# -- measuring the builders of one scene ---------------------------------------------
+
+class Ours:
+    """Our builders behind the peers' interface: ``build`` returns ``(setup, build, tree)``
+    seconds and handle, ``trace`` the closest hits ``(t, prim)``."""
+    version = lbvh.__version__
+
+    def __init__(self, ctx: dev.Context) -> None:
+        self.ctx = ctx
+
+    def build(self, variant: Variant, vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float, Any]:
+        t0 = time.perf_counter()
+        bvh = build_tree(variant, vertices, faces, self.ctx)
+        return 0.0, time.perf_counter() - t0, bvh
+
+    def trace(self, bvh: lbvh.BVH, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        hits = intersect(bvh, origins, directions)
+        return hits.t, hits.prim
+
+
+@dataclass
+class Settings:
+    repeats: int
+    build_budget: float
+    render_budget: float
+
+
+@dataclass
+class Contestant:
+    """One builder on one scene: its samples, its latest tree and its latest hits."""
+    variant: Variant
+    builder: Any                     # Ours, Embree or Warp
+    setup: list[float] = field(default_factory=list)
+    build: list[float] = field(default_factory=list)
+    build_cpu: list[float] = field(default_factory=list)
+    render: list[float] = field(default_factory=list)
+    render_cpu: list[float] = field(default_factory=list)
+    handle: Any = None
+    t: np.ndarray | None = None
+    prim: np.ndarray | None = None
+
+    def run_build(self, scene: Scene) -> None:
+        self.handle = None                       # one tree per builder alive at a time
+        c0 = time.process_time()
+        setup, seconds, self.handle = self.builder.build(self.variant, scene.vertices, scene.faces)
+        self.build_cpu.append(time.process_time() - c0)
+        self.setup.append(setup)
+        self.build.append(seconds)
+
+    def run_render(self, origins: np.ndarray, directions: np.ndarray) -> None:
+        c0, t0 = time.process_time(), time.perf_counter()
+        self.t, self.prim = self.builder.trace(self.handle, origins, directions)
+        self.render.append(time.perf_counter() - t0)
+        self.render_cpu.append(time.process_time() - c0)
+
+
+def median(values: list[float]) -> float:
+    return float(statistics.median(values))
+
+
+def cores_used(cpu: list[float], wall: list[float]) -> float:
+    """Process CPU seconds over wall seconds: about the number of busy cores."""
+    return float(sum(cpu) / sum(wall)) if sum(wall) > 0 else 0.0
+
+
+def interleaved_rounds(contestants: list[Contestant], repeats: int, budget: float,
+                       spent: Callable[[Contestant], float], run: Callable[[Contestant], None],
+                       progress: "Progress", what: str) -> None:
+    """``repeats`` rounds, each running every contestant once, so that the machine's
+    noise hits all of them alike; a contestant that has spent ``budget`` seconds sits
+    out the later rounds (it always runs once)."""
+    for r in range(repeats):
+        for c in contestants:
+            if r and spent(c) >= budget:
+                continue
+            progress.note(f"{c.variant.name} {what} {r + 1}/{repeats}")
+            run(c)
+        progress.advance()
+
+
+ROW_FIELDS = ("scene", "builder", "family", "options", "triangles", "rays", "build_seconds",
+              "build", "render_seconds", "render", "rays_per_second", "seconds_per_ray",
+              "sah_cost", "sah_ratio", "nodes_per_ray", "tris_per_ray", "traversal_cost_per_ray",
+              "traversal_ratio", "hit_fraction", "overflow_count", "agreement",
+              "break_even_vs_fastest", "break_even_vs_reference", "tree", "null_reasons")
+
+PEER_NULLS = {name: "peer: its tree is not visible" for name in
+              ("sah_cost", "sah_ratio", "nodes_per_ray", "tris_per_ray", "traversal_cost_per_ray",
+               "traversal_ratio", "overflow_count", "tree")}
+
+
+def tree_figures(bvh: lbvh.BVH) -> dict:
+    """Depth, nodes, leaves, memory and SAH cost of one of our trees."""
+    q = tree_quality(bvh, C_NODE, C_TRI, epo=False)
+    report = bvh.report()
+    q["leaf_size_histogram"] = {str(k): int(v) for k, v in q["leaf_size_histogram"].items()}
+    q["key_bits"] = {32: 30, 64: 63}.get(report.key_bits, report.key_bits)   # code bits used
+    q["device_build_seconds"] = report.device_seconds or None
+    return q
+
+
+def base_row(scene: Scene, c: Contestant, rays: int) -> dict:
+    """The fields every row has, from the timings and the latest hits."""
+    row = dict.fromkeys(ROW_FIELDS)
+    build_s, render_s = median(c.build), median(c.render)
+    row.update(scene=scene.name, builder=c.variant.name, family=c.variant.family,
+               options={k: v for k, v in c.variant.options.items() if k != "builder"},
+               triangles=len(scene.faces), rays=rays, null_reasons={},
+               build_seconds=build_s,
+               build={"median": build_s, "samples": c.build, "setup_samples": c.setup,
+                      "cpu_over_wall": cores_used(c.build_cpu, np.add(c.build, c.setup).tolist())},
+               render_seconds=render_s,
+               render={"median": render_s, "samples": c.render,
+                       "cpu_over_wall": cores_used(c.render_cpu, c.render)},
+               seconds_per_ray=render_s / rays, rays_per_second=rays / render_s,
+               hit_fraction=float((c.prim >= 0).mean()))
+    return row
+
+
+def our_row(scene: Scene, c: Contestant, origins: np.ndarray, directions: np.ndarray) -> dict:
+    """Tree figures and traversal counters of one of our trees (hits from the counted run)."""
+    row = base_row(scene, c, len(origins))
+    bvh = c.handle
+    hits = intersect(bvh, origins, directions, counters=True)
+    c.t, c.prim = hits.t, hits.prim
+    tree = tree_figures(bvh)
+    nodes, tris = float(hits.nodes_visited.mean()), float(hits.tris_tested.mean())
+    row.update(sah_cost=tree["sah_cost"], nodes_per_ray=nodes, tris_per_ray=tris,
+               traversal_cost_per_ray=C_NODE * nodes + C_TRI * tris,
+               overflow_count=int(hits.overflow_count), tree=tree)
+    return row
+
+
+def peer_row(scene: Scene, c: Contestant, rays: int) -> dict:
+    row = base_row(scene, c, rays)
+    row["null_reasons"].update(PEER_NULLS)
+    return row
+
+
+# -- comparisons within a scene ------------------------------------------------------
+
+def crossing(row: dict, other: dict) -> dict:
+    """Where the total-time lines ``build + n * seconds_per_ray`` of ``row`` and ``other`` cross.
+
+    ``rays``: the break-even ray count ``n > 0``, with ``cheaper_before`` (the faster
+    build) and ``cheaper_after`` (the faster tracer); ``None`` with a ``reason`` when
+    the lines do not cross at a positive ``n`` (one is never more expensive).
+    """
+    out = {"against": other["builder"], "rays": None, "reason": None,
+           "cheaper_before": None, "cheaper_after": None}
+    if row["builder"] == other["builder"]:
+        out["reason"] = f"is {other['builder']} itself"
+        return out
+    extra_build = row["build_seconds"] - other["build_seconds"]
+    saved_per_ray = other["seconds_per_ray"] - row["seconds_per_ray"]
+    if extra_build * saved_per_ray > 0:
+        faster_build, faster_trace = (other, row) if extra_build > 0 else (row, other)
+        out.update(rays=extra_build / saved_per_ray, cheaper_before=faster_build["builder"],
+                   cheaper_after=faster_trace["builder"])
+    elif extra_build <= 0 and saved_per_ray >= 0:
+        out.update(cheaper_before=row["builder"], cheaper_after=row["builder"],
+                   reason=f"never: {row['builder']} builds and traces no slower than "
+                          f"{other['builder']}, it is cheaper for any number of rays")
+    else:
+        out.update(cheaper_before=other["builder"], cheaper_after=other["builder"],
+                   reason=f"never: {row['builder']} builds and traces no faster than "
+                          f"{other['builder']}, which is cheaper for any number of rays")
+    return out
+
+
+def lower_envelope(rows: list[dict]) -> list[dict]:
+    """The cheapest builder for each ray count: segments ``[from_rays, to_rays)`` of the
+    lower envelope of the lines ``build + n * seconds_per_ray`` (``to_rays`` None: forever)."""
+    lines = sorted(rows, key=lambda r: (r["build_seconds"], r["seconds_per_ray"]))
+    current, n, segments = lines[0], 0.0, []
+    while True:
+        best, best_n = None, math.inf
+        for other in lines:
+            saved = current["seconds_per_ray"] - other["seconds_per_ray"]
+            if saved <= 0:
+                continue
+            at = max(n, (other["build_seconds"] - current["build_seconds"]) / saved)
+            if at < best_n or (at == best_n and other["seconds_per_ray"] < best["seconds_per_ray"]):
+                best, best_n = other, at
+        segments.append({"builder": current["builder"], "from_rays": n,
+                         "to_rays": None if best is None else best_n})
+        if best is None:
+            return segments
+        current, n = best, best_n
+
+
+def compare_within_scene(scene: Scene, contestants: list[Contestant], rows: list[dict],
+                         origins: np.ndarray, directions: np.ndarray) -> dict:
+    """Fill the ratios, agreement and break-even fields of the scene's rows; return the
+    scene's summary (fastest build, envelopes)."""
+    i_ref = [r["builder"] for r in rows].index(REFERENCE)
+    ref, ref_row = contestants[i_ref], rows[i_ref]
+    bound = t_bound(scene.vertices, scene.faces, origins, directions, ref.t, ref.prim)
+    ours = [r for r in rows if r["family"] in ("lbvh", "sah")]
+    fastest = min(ours, key=lambda r: r["build_seconds"])
+    for c, row in zip(contestants, rows):
+        row["agreement"] = agreement(c.t, c.prim, ref.t, ref.prim, bound)
+        if row["sah_cost"] is not None:
+            row["sah_ratio"] = row["sah_cost"] / ref_row["sah_cost"]
+            row["traversal_ratio"] = row["traversal_cost_per_ray"] / ref_row["traversal_cost_per_ray"]
+        row["break_even_vs_fastest"] = crossing(row, fastest)
+        row["break_even_vs_reference"] = crossing(row, ref_row)
+    return {"fastest_build": fastest["builder"], "best_by_rays_ours": lower_envelope(ours),
+            "best_by_rays": lower_envelope(rows)}
+
+
+# -- progress ----------------------------------------------------------------------
+
+class Progress:
+    """A one-line text progress bar on stderr (a line per step when not a terminal)."""
+
+    def __init__(self, total: int, stream=sys.stderr) -> None:
+        self.total, self.done, self.stream = max(total, 1), 0, stream
+        self.start = time.perf_counter()
+        self.label = ""
+        self.tty = stream.isatty()
+
+    def begin(self, label: str) -> None:
+        self.label = label
+        self.note("")
+
+    def note(self, step: str) -> None:
+        width = 24
+        filled = int(width * self.done / self.total)
+        bar = "#" * filled + "-" * (width - filled)
+        text = (f"[{bar}] {self.done}/{self.total} {time.perf_counter() - self.start:6.0f} s  "
+                f"{self.label} {step}")
+        if self.tty:
+            self.stream.write("\r" + text.ljust(100)[:100])
+        else:
+            self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def advance(self) -> None:
+        self.done += 1
+
+    def close(self) -> None:
+        self.note("done")
+        if self.tty:
+            self.stream.write("\n")
+
+
+# -- machine ---------------------------------------------------------------------
+
+def machine_info(ctx: dev.Context, peer_status: dict[str, str]) -> dict:
+    return {"cpu": cpu_model(), "cores": os.cpu_count(), "platform": platform.platform(),
+            "opencl_device": ctx.name, "device_compute_units": ctx.compute_units,
+            "python": platform.python_version(), "numpy": np.__version__,
+            "pyopencl": cl.VERSION_TEXT, "lbvh": lbvh.__version__, "peers": peer_status}
+
+
+# -- one scene, all builders ----------------------------------------------------------
+
+def warm_up(ctx: dev.Context, variants: list[Variant]) -> None:
+    """Compile every device program once, outside any timing (a small mesh, one ray)."""
+    v, f = meshes.sphere(2000)
+    for variant in variants:
+        if variant.family == "lbvh":
+            bvh = build_tree(variant, v, f, ctx)
+            intersect(bvh, np.zeros((1, 3), np.float32), np.float32([[0.0, 0.0, 1.0]]))
+
+
+def steps_per_scene(repeats: int) -> int:
+    """Progress steps of one scene: build rounds, checks, render rounds, counters."""
+    return 2 * repeats + 2
+
+
+def bench_scene(scene: Scene, contestants: list[Contestant], settings: Settings,
+                progress: Progress, views: Path | None) -> tuple[dict, list[dict]]:
+    """Build rounds, then render rounds, then the comparisons; returns the scene's
+    summary and its rows."""
+    origins, directions = scene.camera.rays()
+    interleaved_rounds(contestants, settings.repeats, settings.build_budget,
+                       lambda c: sum(c.build) + sum(c.setup), lambda c: c.run_build(scene),
+                       progress, "build")
+    for c in contestants:
+        progress.note(f"{c.variant.name} validate, warm up")
+        if c.variant.ours:
+            c.handle.validate()
+        c.builder.trace(c.handle, origins[:1], directions[:1])   # compiles the trace kernel
+    progress.advance()
+    interleaved_rounds(contestants, settings.repeats, settings.render_budget,
+                       lambda c: sum(c.render), lambda c: c.run_render(origins, directions),
+                       progress, "render")
+    rows = []
+    for c in contestants:
+        progress.note(f"{c.variant.name} counters")
+        rows.append(our_row(scene, c, origins, directions) if c.variant.ours
+                    else peer_row(scene, c, len(origins)))
+    progress.advance()
+    summary = compare_within_scene(scene, contestants, rows, origins, directions)
+    ref = contestants[[r["builder"] for r in rows].index(REFERENCE)]
+    if views is not None:
+        save_view(views / f"{scene.name}.png", scene, directions, ref.t, ref.prim)
+    for c in contestants:
+        c.handle = None
+    summary.update(name=scene.name, source=scene.source, triangles=len(scene.faces),
+                   vertices=len(scene.vertices), camera=scene.camera.as_dict(),
+                   rays=len(origins), hit_fraction=float((ref.prim >= 0).mean()))
+    return summary, rows
+
+
+# -- aggregate, Markdown, chart ----------------------------------------------------
+
+def geomean(values: list[float]) -> float | None:
+    values = [v for v in values if v is not None and v > 0]
+    return float(math.exp(sum(math.log(v) for v in values) / len(values))) if values else None
+
+
+def aggregate(rows: list[dict], chart_rays: int) -> dict[str, dict]:
+    """Per builder, geometric means over the scenes (the chart's points)."""
+    out: dict[str, dict] = {}
+    for builder in dict.fromkeys(r["builder"] for r in rows):
+        mine = [r for r in rows if r["builder"] == builder]
+        out[builder] = {
+            "family": mine[0]["family"], "scenes": len(mine),
+            "build_seconds": geomean([r["build_seconds"] for r in mine]),
+            "build_plus_render_seconds": geomean(
+                [r["build_seconds"] + chart_rays * r["seconds_per_ray"] for r in mine]),
+            "seconds_per_ray": geomean([r["seconds_per_ray"] for r in mine]),
+            "sah_ratio": geomean([r["sah_ratio"] for r in mine]),
+            "traversal_ratio": geomean([r["traversal_ratio"] for r in mine]),
+        }
+    return out
+
+
+def fmt_rays(n: float | None) -> str:
+    if n is None:
+        return "-"
+    for scale, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "K")):
+        if n >= scale:
+            return f"{n / scale:.3g}{suffix}"
+    return f"{n:.3g}"
+
+
+def fmt(x: float | None, digits: int = 3) -> str:
+    return "-" if x is None else f"{x:.{digits}g}"
+
+
+def fmt_build(row: dict, repeats: int) -> str:
+    """Median build in ms, with the number of builds when the budget cut the repeats."""
+    n = len(row["build"]["samples"])
+    return f"{row['build_seconds'] * 1e3:.1f}" + ("" if n == repeats else f" ({n}x)")
+
+
+def fmt_break_even(b: dict) -> str:
+    """``1.2M -> sah`` (past 1.2M rays sah is cheaper), ``embree always``, or ``-`` (itself)."""
+    if b["rays"] is not None:
+        return f"{fmt_rays(b['rays'])} → {b['cheaper_after']}"
+    return "-" if b["cheaper_after"] is None else f"{b['cheaper_after']} always"
+
+
+def markdown(report: dict) -> str:
+    m = report["machine"]
+    s = report["settings"]
+    lines = [
+        "# Builders: speed against error", "",
+        f"Command: `{report['command']}`  ",
+        f"Run time: {report['duration_seconds']:.0f} s on {m['cpu']}, {m['cores']} cores; "
+        f"OpenCL device: {m['opencl_device']}.  ",
+        f"Peers: {', '.join(m['peers'].values())}.  ",
+        f"CPU use of this process (CPU seconds over wall seconds): builds "
+        f"{report['cpu_use']['build']:.2f}, renders {report['cpu_use']['render']:.2f} of "
+        f"{m['cores']} cores (less than the builder can use means other load on the machine).  ",
+        f"Rays: {s['width']}x{s['height']} primary rays per scene; medians of up to "
+        f"{s['repeats']} builds (fewer past {s['build_budget']:g} s of building) and renders. "
+        f"SAH cost with C_node = C_tri = 1, normalised by the root area; reference "
+        f"`{REFERENCE}` (serial full-sweep SAH, leaves up to {MAX_LEAF_SIZE}).", "",
+        "| scene | tris | builder | build ms | render ms | Mrays/s | SAH cost | SAH / ref "
+        "| nodes/ray | tris/ray | trav / ref | agree | agree (ties) | break-even vs fastest "
+        "| break-even vs ref |",
+        "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in report["rows"]:
+        a = r["agreement"]
+        lines.append(
+            f"| {r['scene']} | {r['triangles']:,} | {r['builder']} | {fmt_build(r, s['repeats'])} "
+            f"| {r['render_seconds'] * 1e3:.1f} | {r['rays_per_second'] / 1e6:.2f} "
+            f"| {fmt(r['sah_cost'], 4)} | {fmt(r['sah_ratio'])} | {fmt(r['nodes_per_ray'])} "
+            f"| {fmt(r['tris_per_ray'])} | {fmt(r['traversal_ratio'])} | {a['fraction']:.4f} "
+            f"| {a['fraction_with_ties']:.4f} | {fmt_break_even(r['break_even_vs_fastest'])} "
+            f"| {fmt_break_even(r['break_even_vs_reference'])} |")
+    lines += ["", "## Which builder for how many rays", "",
+              "Cheapest total time (build + rays x time per ray) by ray count, "
+              "among our trees (same kernel) and with the peers:", ""]
+    for sc in report["scenes"]:
+        lines.append(f"- **{sc['name']}** ({sc['triangles']:,} tris, camera hit fraction "
+                     f"{sc['hit_fraction']:.2f}): ours: {envelope_text(sc['best_by_rays_ours'])}; "
+                     f"all: {envelope_text(sc['best_by_rays'])}")
+    for skipped in report["skipped"]:
+        lines.append(f"- {skipped['scene']}: skipped ({skipped['reason']})")
+    lines += ["", COLUMN_NOTES]
+    return "\n".join(lines) + "\n"
+
+
+def envelope_text(segments: list[dict]) -> str:
+    """``a up to 1.2M rays, then b up to 40M, then c``."""
+    parts = [seg["builder"] + ("" if seg["to_rays"] is None else f" up to {fmt_rays(seg['to_rays'])} rays")
+             for seg in segments]
+    return ", then ".join(parts)
+
+
+COLUMN_NOTES = """Columns: `build ms` host arrays to a tree on the device (peers: their own build,
+Embree's scene commit; `(1x)`: built once, the budget cut the repeats); `render ms` closest hits of the primary rays (`lbvh.traverse.intersect`,
+transfers included; peers: their own traversal); `SAH / ref`, `trav / ref`: SAH cost and measured
+nodes + triangles per ray over the reference's; `agree`: fraction of rays with the reference's
+hit or miss, primitive and t (within 16 u (t + s) / max(|cos|, 1e-3)); `agree (ties)` also
+accepts another primitive at the same t; break-even: `n → b`: past n rays, b (the faster
+tracer) has the lower total time build + rays x time per ray, below n the faster build has;
+`b always`: b is never more expensive; `-`: the row itself. `fastest` is the fastest build
+among our trees."""
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Points not dominated in (x, y), both minimised, sorted by x."""
+    front, best_y = [], math.inf
+    for x, y in sorted(points):
+        if y < best_y:
+            front.append((x, y))
+            best_y = y
+    return front
+
+
+PEER_LINES = ("-", "--", ":", "-.", (0, (5, 1, 1, 1)))
+
+
+def point_style(name: str, family: str) -> dict:
+    """Colour by key width (sah red), filled square with the leaf collapse."""
+    colour = {"30": "C0", "63": "C1", "auto": "C2"}.get(name.split("-")[-1].split("+")[0], "C3")
+    return {"color": colour, "marker": "s" if "collapse" in name else "o", "s": 50, "zorder": 3}
+
+
+def chart(report: dict, path: Path) -> str | None:
+    """Speed against error in 2x2 panels, one point per builder (geometric means over the
+    scenes); peers, whose trees are not visible, are vertical lines. Returns why no chart
+    was written, or None."""
+    try:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return "matplotlib is not installed"
+    agg = report["aggregate"]
+    n_rays = report["settings"]["chart_rays"]
+    xs = (("build_seconds", "build time (s)"),
+          ("build_plus_render_seconds", f"build + render of {fmt_rays(n_rays)} rays (s)"))
+    ys = (("sah_ratio", "SAH cost / SAH reference's"),
+          ("traversal_ratio", "measured nodes + triangles per ray / reference's"))
+    fig, axes = plt.subplots(2, 2, figsize=(12, 9))
+    for (ykey, ylabel), ax_row in zip(ys, axes):
+        for (xkey, xlabel), ax in zip(xs, ax_row):
+            draw_panel(ax, agg, xkey, ykey)
+            ax.set_xlabel(xlabel)
+            ax.set_ylabel(ylabel)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=6, fontsize=8, frameon=False)
+    scenes = ", ".join(s["name"] for s in report["scenes"])
+    fig.suptitle(f"Speed against error, geometric means over {len(report['scenes'])} scene(s): "
+                 f"{scenes}\n{report['machine']['cpu']}, {report['machine']['cores']} cores; "
+                 f"peers (grey lines) have no visible tree", fontsize=10)
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return None
+
+
+def draw_panel(ax: Any, agg: dict, xkey: str, ykey: str) -> None:
+    """Our builders as points with their Pareto front (both axes minimised), peers as lines."""
+    points = []
+    peers = 0
+    for name, a in agg.items():
+        if a[ykey] is not None:
+            ax.scatter(a[xkey], a[ykey], label=name, **point_style(name, a["family"]))
+            points.append((a[xkey], a[ykey]))
+        elif a[xkey] is not None:
+            ax.axvline(a[xkey], color="0.45", linewidth=1.2, label=name,
+                       linestyle=PEER_LINES[peers % len(PEER_LINES)])
+            peers += 1
+    front = pareto_front(points)
+    ax.step([p[0] for p in front], [p[1] for p in front], where="post", color="C4",
+            linewidth=2.0, alpha=0.5, label="Pareto front", zorder=2)
+    ax.set_xscale("log")
+    ax.grid(True, which="both", alpha=0.3)
+
+
+# -- main ----------------------------------------------------------------------------
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--rays: {text!r}, expected WIDTHxHEIGHT") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"--rays: {text!r}, both sides must be positive")
+    return w, h
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--quick", action="store_true",
+                   help=f"CI mode: {', '.join(QUICK_SCENES)} at {QUICK_RAYS[0]}x{QUICK_RAYS[1]} rays")
+    p.add_argument("--scenes", nargs="+", metavar="NAME",
+                   help=f"scenes (comma or space separated) from: {', '.join(known_scenes())}; "
+                        f"default {','.join(FULL_SCENES)}")
+    p.add_argument("--rays", type=parse_size, help="primary rays WIDTHxHEIGHT per scene "
+                   f"(default {FULL_RAYS[0]}x{FULL_RAYS[1]}, quick {QUICK_RAYS[0]}x{QUICK_RAYS[1]})")
+    p.add_argument("--repeats", type=int, default=3, help="builds and renders per builder (median)")
+    p.add_argument("--build-budget", type=float, default=20.0,
+                   help="stop repeating a builder's builds after this many seconds (default 20)")
+    p.add_argument("--chart-rays", type=int, default=CHART_RAYS,
+                   help="ray count of the chart's build + render axis (default 1e7)")
+    p.add_argument("--no-peers", action="store_true", help="skip Embree and warp")
+    p.add_argument("--device", default=None, help="OpenCL device (default: $LBVH_DEVICE or PoCL)")
+    p.add_argument("--shared", type=Path, default=SHARED_SCENES, help="folder of the shared scenes")
+    p.add_argument("--out", type=Path, default=HERE / "out", help="output folder (default bench/out)")
+    args = p.parse_args(argv)
+    if args.repeats < 1:
+        p.error("--repeats: at least 1")
+    names = [n for item in (args.scenes or []) for n in item.split(",") if n]
+    unknown = [n for n in names if n not in known_scenes()]
+    if unknown:
+        p.error(f"--scenes: unknown scene {unknown[0]!r}; known: {', '.join(known_scenes())}")
+    args.scene_names = names or list(QUICK_SCENES if args.quick else FULL_SCENES)
+    args.size = args.rays or (QUICK_RAYS if args.quick else FULL_RAYS)
+    return args
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Run the bench; returns the report (also written as JSON, Markdown and PNG)."""
+    args = parse_args(argv)
+    started = time.perf_counter()
+    command = " ".join([".venv/bin/python bench/bench_builders.py",
+                        *(sys.argv[1:] if argv is None else argv)])
+    ctx = dev.get_context(args.device)
+    peers, peer_status = load_peers(not args.no_peers)
+    builders = {"lbvh": Ours(ctx), "sah": Ours(ctx), **peers}
+    variants = our_variants() + [v for peer in peers.values() for v in peer.variants()]
+    settings = Settings(args.repeats, args.build_budget, args.build_budget)
+    cameras = load_cameras()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    warm_up(ctx, variants)
+    progress = Progress(len(args.scene_names) * steps_per_scene(args.repeats))
+    scenes, rows, skipped = [], [], []
+    for name in args.scene_names:
+        progress.begin(f"{name}:")
+        progress.note("loading")
+        scene = load_bench_scene(name, args.size, cameras, args.shared)
+        if isinstance(scene, str):
+            skipped.append({"scene": name, "reason": scene})
+            progress.done += steps_per_scene(args.repeats)
+            continue
+        contestants = [Contestant(v, builders[v.family]) for v in variants]
+        summary, scene_rows = bench_scene(scene, contestants, settings, progress, out / "views")
+        scenes.append(summary)
+        rows += scene_rows
+    progress.close()
+    report = {
+        "command": command,
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "machine": machine_info(ctx, peer_status),
+        "settings": {"scenes": args.scene_names, "width": args.size[0], "height": args.size[1],
+                     "repeats": args.repeats, "build_budget": args.build_budget,
+                     "chart_rays": args.chart_rays, "quick": args.quick,
+                     "c_node": C_NODE, "c_tri": C_TRI, "max_leaf_size": MAX_LEAF_SIZE,
+                     "reference": REFERENCE,
+                     "t_bound": f"{T_BOUND_ULPS} * 2^-24 * (t_ref + s) / max(|cos a|, {COS_FLOOR})"},
+        "scenes": scenes, "skipped": skipped, "rows": rows,
+        "aggregate": aggregate(rows, args.chart_rays) if rows else {},
+        "cpu_use": {what: geomean([r[what]["cpu_over_wall"] for r in rows if r["family"] == "lbvh"]) or 0.0
+                    for what in ("build", "render")},
+    }
+    write_outputs(report, out, started)
+    return report
+
+
+def write_outputs(report: dict, out: Path, started: float) -> None:
+    """The chart, then JSON and Markdown (also to stdout); the report records what was
+    written and the run time up to here."""
+    paths = {"json": out / "bench_builders.json", "markdown": out / "bench_builders.md",
+             "chart": out / "bench_builders.png"}
+    no_chart = chart(report, paths["chart"]) if report["rows"] else "no rows"
+    report["outputs"] = {k: str(p) for k, p in paths.items() if k != "chart" or no_chart is None}
+    report["chart_missing"] = no_chart
+    report["duration_seconds"] = time.perf_counter() - started
+    text = markdown(report)
+    paths["markdown"].write_text(text)
+    paths["json"].write_text(json.dumps(report, indent=1, allow_nan=False) + "\n")
+    print(text)
+    print(f"[bench] written to {out}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
