@@ -1,7 +1,9 @@
 """lbvh command line: render a scene, report its BVH, list the OpenCL devices.
 
 ``lbvh render SCENE -o image.png`` renders a scene; ``lbvh info SCENE`` prints
-the build report of its BVH; ``lbvh devices`` lists the OpenCL devices.
+the build report of its BVH; ``lbvh devices`` lists the OpenCL devices;
+``lbvh check`` runs the hard-case suite (:mod:`lbvh.check`) and exits 1 if a
+case fails.
 
 Errors (bad files, bad meshes, bad options, device problems) end the program
 with a one-line message on stderr and exit status 2, not a traceback.
@@ -137,6 +139,12 @@ def cmd_devices(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_check(args: argparse.Namespace) -> int:
+    from .check import cmd_check as run_checks
+
+    return run_checks(args)
+
+
 def make_parser() -> argparse.ArgumentParser:
     from .render import AO_SAMPLES, MODES
 
@@ -162,6 +170,10 @@ def make_parser() -> argparse.ArgumentParser:
                    help="ray/triangle test (default: watertight)")
     _add_build_options(p)
     p.set_defaults(func=cmd_render)
+    p = sub.add_parser("check", help="run the hard-case suite with every builder and report")
+    from .check import add_arguments as add_check_arguments
+    add_check_arguments(p)
+    p.set_defaults(func=cmd_check)
     p = sub.add_parser("devices", help="list the OpenCL devices")
     p.add_argument("--device", default=None)
     p.set_defaults(func=cmd_devices)
