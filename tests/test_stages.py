@@ -79,23 +79,24 @@ def test_zero_extent_axes_give_zero_cells(ctx):
     assert np.all(keys == 0)
 
 
-def sort_on_device(ctx, keys, values, key_bits):
+def sort_on_device(ctx, keys, values, key_bits, radix_bits=None):
     mem = dev.MemoryTracker(ctx)
     kb = cl.Buffer(ctx.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=keys)
     vb = cl.Buffer(ctx.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=values)
-    res = radix_sort(ctx, mem, kb, vb, len(keys), key_bits)
+    res = radix_sort(ctx, mem, kb, vb, len(keys), key_bits, radix_bits=radix_bits)
     return read(ctx, res.keys, keys.dtype, len(keys)), read(ctx, res.values, np.uint32, len(keys)), res.passes
 
 
+@pytest.mark.parametrize("radix_bits", [8, 11])  # the GPU's and the CPU's digit widths
 @pytest.mark.parametrize("key_bits", [32, 64])
 @pytest.mark.parametrize("n, spread", [(1, 30), (2, 30), (1000, 3), (70001, 30), (70001, 63), (300000, 12)])
-def test_radix_sort_matches_stable_argsort(ctx, key_bits, n, spread):
+def test_radix_sort_matches_stable_argsort(ctx, key_bits, n, spread, radix_bits):
     rng = np.random.default_rng(n + spread)
     dtype = KEY_DTYPE[key_bits]
     top = min(spread, 63 if key_bits == 64 else 32)
     keys = (rng.integers(0, 1 << top, n, dtype=np.uint64)).astype(dtype)
     values = rng.permutation(n).astype(np.uint32)  # stability shows through the values
-    got_k, got_v, passes = sort_on_device(ctx, keys, values, key_bits)
+    got_k, got_v, passes = sort_on_device(ctx, keys, values, key_bits, radix_bits)
     exp_k, exp_v = radix_sort_numpy(keys, values)
     assert np.array_equal(got_k, exp_k)
     assert np.array_equal(got_v, exp_v)
@@ -104,17 +105,20 @@ def test_radix_sort_matches_stable_argsort(ctx, key_bits, n, spread):
 def test_radix_sort_skips_uniform_digits(ctx):
     n = 50000
     rng = np.random.default_rng(1)
-    # only bits 8..15 vary: exactly one pass must run
-    keys = ((rng.integers(0, 256, n).astype(np.uint64) << 8) | 0xAB0000FF).astype(np.uint32)
+    # only bits 11..18 vary: one 11-bit digit, two 8-bit digits
+    keys = ((rng.integers(0, 256, n).astype(np.uint64) << 11) | 0xAB0007FF).astype(np.uint32)
     values = np.arange(n, dtype=np.uint32)
-    got_k, got_v, passes = sort_on_device(ctx, keys, values, 32)
+    got_k, got_v, passes = sort_on_device(ctx, keys, values, 32, radix_bits=11)
     assert passes == 1
+    _, got_v8, passes8 = sort_on_device(ctx, keys, values, 32, radix_bits=8)
+    assert passes8 == 2 and np.array_equal(got_v8, got_v)
     exp_k, exp_v = radix_sort_numpy(keys, values)
     assert np.array_equal(got_k, exp_k) and np.array_equal(got_v, exp_v)
     equal = np.full(1000, 0xDEADBEEF, np.uint32)
     got_k, got_v, passes = sort_on_device(ctx, equal, np.arange(1000, dtype=np.uint32), 32)
     assert passes == 0 and np.array_equal(got_v, np.arange(1000))
-    assert digit_shifts(0xFF00, 32) == [8] and digit_shifts(1 << 62, 64) == [56]
+    assert digit_shifts(0xFF00, 32, 8) == [8] and digit_shifts(1 << 62, 64, 8) == [56]
+    assert digit_shifts(0xFF00, 32, 11) == [0, 11] and digit_shifts(1 << 62, 64, 11) == [55]
 
 
 def emitted_tree(ctx, sorted_keys, key_bits):
