@@ -60,7 +60,6 @@ SCENE_FILES = {"bunny": "stanford-bunny.obj", "sponza": "crytek_sponza.obj",
 KEY_BITS = {"auto": None, "30": 32, "63": 64}
 # The pipeline is being tuned: newer versions store each triangle's box in the
 # bounds stage (morton and refit read it) instead of recomputing it from the mesh.
-STORES_TRIANGLE_BOXES = hasattr(lbvh_bounds, "triangle_bounds")
 NODE_BYTES = 32
 
 # Targets of issue 2, as ratios from one run.
@@ -234,14 +233,9 @@ def device_morton_keys(ctx: dev.Context, vbuf: cl.Buffer, fbuf: cl.Buffer, n: in
                        key_bits: int) -> np.ndarray:
     """The unsorted Morton keys the build sorts, from the device stages (outside any timing)."""
     mem = dev.MemoryTracker(ctx)
-    if STORES_TRIANGLE_BOXES:
-        boxes, box, _ = lbvh_bounds.triangle_bounds(ctx, mem, vbuf, fbuf, n)
-        keys, values, _ = morton_codes(ctx, mem, boxes, box, n, key_bits)
-        scratch = [boxes, box]
-    else:
-        box, _ = lbvh_bounds.centroid_bounds(ctx, mem, vbuf, fbuf, n)
-        keys, values, _ = morton_codes(ctx, mem, vbuf, fbuf, box, n, key_bits)
-        scratch = [box]
+    boxes, box, _ = lbvh_bounds.triangle_bounds(ctx, mem, vbuf, fbuf, n)
+    keys, values, _ = morton_codes(ctx, mem, boxes, box, n, key_bits)
+    scratch = [boxes, box]
     out = dev.from_device(ctx, keys, KEY_DTYPE[key_bits], (n,))
     mem.free(keys, values, *scratch)
     return out
@@ -375,7 +369,7 @@ def phase_traffic(num_vertices: int, n: int, key_bytes: int, sort_passes: int) -
     nodes = 2 * n - 1
     pair = key_bytes + 4
     # Triangle boxes: stored by bounds (32 B each) and read back, or recomputed from the mesh.
-    boxes_out, boxes_in = (NODE_BYTES * n, NODE_BYTES * n) if STORES_TRIANGLE_BOXES else (0, mesh)
+    boxes_out = boxes_in = NODE_BYTES * n  # the stored triangle boxes, one record each
     refit_sync = 4 * nodes + 8 * nodes + 4 * nodes      # clear counters, atomics, parents
     return {
         "bounds": mesh + boxes_out,
