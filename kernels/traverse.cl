@@ -2,11 +2,20 @@
  * lbvh/traverse.py.
  *
  * A work-item traces the rays [chunk_first, chunk_last) one after the other
- * (one ray on a GPU) with an explicit stack, in closest-hit or any-hit mode.
+ * (the host gives every work-item one ray, in work-groups of 64, on PoCL as on
+ * a GPU) with an explicit stack, in closest-hit or any-hit mode.
+ *
+ * Ordered traversal: of two children whose boxes the ray enters, the one with
+ * the smaller entry distance is visited first; equal entries: the smaller exit
+ * distance; equal again: the right child. The other is pushed with its entry
+ * distance and dropped when popped behind the closest hit so far; a child
+ * whose entry lies beyond the closest hit is not entered at all.
  *
  * Compile-time variants (-D), all optional:
  *   ANY_HIT=1        stop at the first hit in [tmin, tmax] (occlusion)
- *   COUNTERS=1       write nodes visited and triangles tested per ray
+ *   COUNTERS=1       write per ray the nodes visited (the root, whose box is
+ *                    always tested, plus every node descended into or popped)
+ *                    and the triangles tested
  *   TRIANGLE_TEST=0  watertight test of Woop, Benthin, Wald 2013 (default)
  *   TRIANGLE_TEST=1  Moller-Trumbore 1997 (faster, leaks through shared edges)
  *   STACK_SIZE=n     stack entries; a push beyond n sets FLAG_OVERFLOW and

@@ -55,9 +55,10 @@ STACK_BUCKETS = (32, 64, 96, 128, 192, 256)
 
 TRIANGLE_TESTS = {"watertight": 0, "moller": 1}
 
-# Rays per work-item on a CPU device: PoCL runs a work-group's work-items as a
-# loop, so small groups of contiguous rays keep every core busy (see the report).
-_CPU_WORK_GROUP = 64
+# Work-group size. On PoCL a work-group's work-items run as a loop on one core;
+# groups of 1, 16, 64 and 256 rays, and work-items looping over 64 or 512 rays,
+# measured the same within noise on the bunny (2 cores), so PoCL gets the GPU's 64.
+_WORK_GROUP = 64
 
 _UNIT_ROUNDOFF = 2.0 ** -24
 
@@ -117,6 +118,7 @@ class DeviceHits:
 # -- validation -----------------------------------------------------------------
 
 def _real_array(name: str, value: Any) -> np.ndarray:
+    """``value`` as a numpy array of a real number type, or ``ValueError``."""
     try:
         arr = np.asarray(value)
     except Exception as exc:  # ragged lists and the like
@@ -132,69 +134,73 @@ def _first_bad(mask: np.ndarray) -> int:
     return int(np.flatnonzero(mask)[0])
 
 
-def _as_ray_vectors(name: str, value: Any, count: int | None) -> np.ndarray:
-    """``float32 (N, 3)`` finite vectors, or ``ValueError`` naming the first bad ray."""
+def _ray_vectors(name: str, value: Any, count: int | None) -> np.ndarray:
+    """The caller's ``(N, 3)`` array, shape and dtype checked (values are checked packed)."""
     arr = _real_array(name, value)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name}: shape {arr.shape}, expected (N, 3)")
     if count is not None and len(arr) != count:
         raise ValueError(f"{name}: {len(arr)} rays, but origins has {count}")
-    with np.errstate(over="ignore", invalid="ignore"):
-        out = np.ascontiguousarray(arr, dtype=np.float32)
-    bad = ~np.isfinite(out).all(axis=1)
-    if bad.any():
-        i = _first_bad(bad)
-        raise ValueError(f"{name}: ray {i} has a NaN, infinite or beyond-float32 component "
-                         f"{arr[i].tolist()}")
-    return out
+    return arr
 
 
-def _as_interval(name: str, value: Any, count: int) -> np.ndarray:
-    """``float32 (N,)`` from a scalar or an ``(N,)`` array; NaN refused."""
+def _interval(name: str, value: Any, count: int) -> np.ndarray:
+    """The caller's scalar or ``(N,)`` array, shape and dtype checked."""
     arr = _real_array(name, value)
-    if arr.ndim == 0:
-        arr = np.full(count, arr, dtype=arr.dtype)
-    elif arr.shape != (count,):
+    if arr.ndim != 0 and arr.shape != (count,):
         raise ValueError(f"{name}: shape {arr.shape}, expected a scalar or ({count},)")
-    with np.errstate(over="ignore", invalid="ignore"):
-        out = np.ascontiguousarray(arr, dtype=np.float32)
-    nan = np.isnan(out)
-    if nan.any():
-        raise ValueError(f"{name}: ray {_first_bad(nan)} is NaN")
-    return out
+    return arr
+
+
+def _raise_first_bad(rays: np.ndarray, origins: np.ndarray, directions: np.ndarray) -> None:
+    """Name the first problem of packed rays (slow path, only after the fast checks failed)."""
+    for name, cols, given in (("origins", slice(0, 3), origins), ("directions", slice(4, 7), directions)):
+        bad = ~np.isfinite(rays[:, cols]).all(axis=1)
+        if bad.any():
+            i = _first_bad(bad)
+            raise ValueError(f"{name}: ray {i} has a NaN, infinite or beyond-float32 component "
+                             f"{given[i].tolist()}")
+    zero = ~(rays[:, 4:7] != 0).any(axis=1)
+    if zero.any():
+        raise ValueError(f"directions: ray {_first_bad(zero)} has a zero-length direction "
+                         "(after conversion to float32)")
+    lo, hi = rays[:, 3], rays[:, 7]
+    for name, col in (("tmin", lo), ("tmax", hi)):
+        if np.isnan(col).any():
+            raise ValueError(f"{name}: ray {_first_bad(np.isnan(col))} is NaN")
+    checks = ((lo < 0, "tmin: ray {i} has a negative tmin {lo}"),
+              (np.isinf(lo), "tmin: ray {i} has an infinite tmin"),
+              (lo > hi, "tmin/tmax: ray {i} has tmin {lo} > tmax {hi}"))
+    for bad, message in checks:
+        if bad.any():
+            i = _first_bad(bad)
+            raise ValueError(message.format(i=i, lo=float(lo[i]), hi=float(hi[i])))
 
 
 def pack_rays(origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf) -> np.ndarray:
     """Validate rays and pack them as :data:`RAY_DTYPE` records ``(N,)`` for the device.
 
-    Raises ``ValueError`` naming the first bad ray (see the module docstring).
+    Values are converted to float32 first and checked after (a float64 beyond the
+    float32 range is refused). Raises ``ValueError`` naming the first bad ray (see
+    the module docstring).
     """
-    o = _as_ray_vectors("origins", origins, None)
-    d = _as_ray_vectors("directions", directions, len(o))
-    zero = ~(d != 0).any(axis=1)
-    if zero.any():
-        raise ValueError(f"directions: ray {_first_bad(zero)} has a zero-length direction "
-                         "(after conversion to float32)")
-    lo = _as_interval("tmin", tmin, len(o))
-    hi = _as_interval("tmax", tmax, len(o))
-    bad = lo < 0
-    if bad.any():
-        i = _first_bad(bad)
-        raise ValueError(f"tmin: ray {i} has a negative tmin {float(lo[i])}")
-    bad = ~np.isfinite(lo)
-    if bad.any():
-        i = _first_bad(bad)
-        raise ValueError(f"tmin: ray {i} has an infinite tmin")
-    bad = lo > hi
-    if bad.any():
-        i = _first_bad(bad)
-        raise ValueError(f"tmin/tmax: ray {i} has tmin {float(lo[i])} > tmax {float(hi[i])}")
-    rays = np.empty(len(o), RAY_DTYPE)
-    rays["origin"] = o
-    rays["direction"] = d
-    rays["tmin"] = lo
-    rays["tmax"] = hi
-    return rays
+    o = _ray_vectors("origins", origins, None)
+    d = _ray_vectors("directions", directions, len(o))
+    n = len(o)
+    lo, hi = _interval("tmin", tmin, n), _interval("tmax", tmax, n)
+    rays = np.empty((n, 8), np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):
+        rays[:, 0:3] = o
+        rays[:, 3] = lo
+        rays[:, 4:7] = d
+        rays[:, 7] = hi
+    # One pass per condition over all rays; only a failure looks for the first bad ray.
+    ok = (np.isfinite(rays[:, :7]).all()
+          and ((rays[:, 4] != 0) | (rays[:, 5] != 0) | (rays[:, 6] != 0)).all()
+          and ((rays[:, 3] >= 0) & (rays[:, 3] <= rays[:, 7])).all())
+    if not ok:
+        _raise_first_bad(rays, o, d)
+    return rays.view(RAY_DTYPE).reshape(n)
 
 
 # -- programs -------------------------------------------------------------------
@@ -246,10 +252,9 @@ def _defines(ctx: dev.Context, any_hit: bool, triangle_test: str, counters: bool
             "SLAB_PAD": slab_pad(ctx)}
 
 
-def _launch(ctx: dev.Context, count: int) -> tuple[int, int, tuple[int] | None]:
+def _launch(count: int) -> tuple[int, int, tuple[int]]:
     """(rays per work-item, global size, local size): one ray per work-item everywhere."""
-    local = _CPU_WORK_GROUP if ctx.is_cpu else 64
-    return 1, max(1, -(-count // local) * local), (local,)
+    return 1, max(1, -(-count // _WORK_GROUP) * _WORK_GROUP), (_WORK_GROUP,)
 
 
 # -- device-level entry -----------------------------------------------------------
@@ -280,7 +285,7 @@ def trace_buffers(bvh: Any, rays: cl.Buffer, count: int, *, any_hit: bool = Fals
         flags = dev.empty(ctx, 4 * count)
     if counters and counter_buf is None:
         counter_buf = dev.empty(ctx, 8 * count)
-    per_item, global_size, local = _launch(ctx, count)
+    per_item, global_size, local = _launch(count)
     ev = knl(ctx.queue, (global_size,), local, bvh.nodes_buf, bvh.prim_order_buf,
              bvh.vertices_buf, bvh.faces_buf, np.int32(bvh.root), np.int32(bvh.num_nodes),
              rays, hits, flags, counter_buf if counters else flags, np.int32(count),

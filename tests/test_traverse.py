@@ -82,7 +82,7 @@ def median_split_tree(v, f, leaf_size=4):
         np.array(order, np.int32)
 
 
-TREES = ("lbvh30", "lbvh63", "host_median", "host_one_leaf")
+TREES = ("lbvh30", "lbvh63", "lbvh_collapse", "sah", "host_median", "host_one_leaf")
 
 
 @functools.lru_cache(maxsize=None)
@@ -92,6 +92,10 @@ def tree(scene_name, kind):
         return lbvh.build(v, f, key_bits=30)
     if kind == "lbvh63":
         return lbvh.build(v, f, key_bits=63)
+    if kind == "lbvh_collapse":      # leaves of several triangles
+        return lbvh.build(v, f, collapse=True)
+    if kind == "sah":                # the serial SAH reference, uploaded with from_arrays
+        return lbvh.build(v, f, builder="sah")
     if kind == "host_median":
         nodes, order = median_split_tree(v, f)
     else:  # every triangle in one leaf, the root
