@@ -16,7 +16,7 @@ import pyopencl as cl
 import pytest
 
 import lbvh
-from conftest import random_soup, shipped_mesh
+from conftest import random_soup, shared_mesh, shipped_mesh
 from lbvh import traverse as tr
 from lbvh.layout import make_nodes
 from lbvh.oracle import brute_force, hits_on
@@ -581,3 +581,20 @@ def test_oracle_culling_never_changes_a_result():
     culled = oracle("suzanne")
     for field in ("t", "prim", "u", "v"):
         assert (getattr(full, field) == getattr(culled, field)[pick]).all()
+
+
+def test_conference_zero_area_triangles_are_never_hit():
+    """The conference room ships 53,627 zero-area triangles: rays aimed at them hit
+    their neighbours or nothing, exactly as the oracle says."""
+    v, f = shared_mesh("conference.obj")
+    tri = v[f].astype(np.float64)
+    zero = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) == 0
+    rng = np.random.default_rng(9)
+    aim = np.flatnonzero(zero)[rng.choice(zero.sum(), 300, replace=False)]
+    targets = tri[aim].mean(axis=1)
+    o = (targets + _unit(rng.normal(size=(300, 3))) * 0.05 * float(np.ptp(v, axis=0).max()))
+    o, d = o.astype(np.float32), (targets - o).astype(np.float32)
+    bvh = lbvh.build(v, f)
+    got = bvh.intersect(o, d)
+    assert got.hit.any() and not zero[got.prim[got.hit]].any()
+    assert_matches_oracle(v, f, o, d, got, brute_force(v, f, o, d))
