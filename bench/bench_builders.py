@@ -704,6 +704,7 @@ def fmt_break_even(b: dict) -> str:
 def markdown(report: dict) -> str:
     m = report["machine"]
     s = report["settings"]
+    spread = render_spread(report["rows"])
     lines = [
         "# Builders: speed against error", "",
         f"Command: `{report['command']}`  ",
@@ -713,6 +714,8 @@ def markdown(report: dict) -> str:
         f"CPU use of this process (CPU seconds over wall seconds): builds "
         f"{report['cpu_use']['build']:.2f}, renders {report['cpu_use']['render']:.2f} of "
         f"{m['cores']} cores (less than the builder can use means other load on the machine).  ",
+        f"Noise: the render samples of a row spread by {spread[0]:.0%} of their median "
+        f"(median over rows; worst {spread[1]:.0%}): smaller render differences are noise.  ",
         f"Rays: {s['width']}x{s['height']} primary rays per scene; medians of up to "
         f"{s['repeats']} builds (fewer past {s['build_budget']:g} s of building) and renders. "
         f"SAH cost with C_node = C_tri = 1, normalised by the root area; reference "
@@ -742,6 +745,13 @@ def markdown(report: dict) -> str:
         lines.append(f"- {skipped['scene']}: skipped ({skipped['reason']})")
     lines += ["", COLUMN_NOTES]
     return "\n".join(lines) + "\n"
+
+
+def render_spread(rows: list[dict]) -> tuple[float, float]:
+    """Median and largest (max - min) / median of the rows' render samples."""
+    spreads = [(max(r["render"]["samples"]) - min(r["render"]["samples"])) / r["render_seconds"]
+               for r in rows] or [0.0]
+    return float(statistics.median(spreads)), float(max(spreads))
 
 
 def envelope_text(segments: list[dict]) -> str:
