@@ -27,8 +27,8 @@ __kernel void triangle_bounds(__global const float *vertices,
         boxes[2 * t] = (float4)(lo, 0.0f);
         boxes[2 * t + 1] = (float4)(hi, 0.0f);
         float3 c = box_centre(lo, hi);
-        cmin = fmin(cmin, c);
-        cmax = fmax(cmax, c);
+        cmin = min3(cmin, c);
+        cmax = max3(cmax, c);
     }
     partial[2 * gid] = (float4)(cmin, 0.0f);
     partial[2 * gid + 1] = (float4)(cmax, 0.0f);
@@ -38,11 +38,11 @@ __kernel void triangle_bounds(__global const float *vertices,
 __kernel void reduce_boxes(__global const float4 *partial, const int count,
                            __global float4 *out) {
     if (get_global_id(0) != 0) return;
-    float4 lo = (float4)(INFINITY), hi = (float4)(-INFINITY);
+    float3 lo = (float3)(INFINITY), hi = (float3)(-INFINITY);
     for (int i = 0; i < count; ++i) {
-        lo = fmin(lo, partial[2 * i]);
-        hi = fmax(hi, partial[2 * i + 1]);
+        lo = min3(lo, partial[2 * i].xyz);
+        hi = max3(hi, partial[2 * i + 1].xyz);
     }
-    out[0] = lo;
-    out[1] = hi;
+    out[0] = (float4)(lo, 0.0f);
+    out[1] = (float4)(hi, 0.0f);
 }

@@ -38,19 +38,36 @@ inline int second_arrival(__global int *arrivals, int p) {
     return second;
 }
 
-inline float3 load_vertex(__global const float *vertices, uint v) {
-    return vload3(v, vertices);
+/* min and max by plain comparisons: PoCL 3.0 calls fmin, fmax and vload3
+ * out of line, which cost a third of the time of the kernels using them. The
+ * inputs here are never NaN (the host rejects NaN coordinates), where these
+ * agree with fmin/fmax and with numpy's minimum/maximum. */
+inline float3 min3(float3 a, float3 b) {
+    return (float3)(a.x < b.x ? a.x : b.x, a.y < b.y ? a.y : b.y, a.z < b.z ? a.z : b.z);
+}
+inline float3 max3(float3 a, float3 b) {
+    return (float3)(a.x > b.x ? a.x : b.x, a.y > b.y ? a.y : b.y, a.z > b.z ? a.z : b.z);
+}
+
+inline float3 load_float3(__global const float *p, uint i) {
+    return (float3)(p[3 * i], p[3 * i + 1], p[3 * i + 2]);
+}
+
+inline void store_float3(__global float *p, float3 v) {
+    p[0] = v.x;
+    p[1] = v.y;
+    p[2] = v.z;
 }
 
 /* Axis-aligned box of triangle t: min and max of its three vertices (exact). */
 inline void triangle_box(__global const float *vertices, __global const uint *faces,
                          int t, float3 *lo, float3 *hi) {
-    uint3 f = vload3(t, faces);
-    float3 a = load_vertex(vertices, f.x);
-    float3 b = load_vertex(vertices, f.y);
-    float3 c = load_vertex(vertices, f.z);
-    *lo = fmin(fmin(a, b), c);
-    *hi = fmax(fmax(a, b), c);
+    const uint fa = faces[3 * t], fb = faces[3 * t + 1], fc = faces[3 * t + 2];
+    float3 a = load_float3(vertices, fa);
+    float3 b = load_float3(vertices, fb);
+    float3 c = load_float3(vertices, fc);
+    *lo = min3(min3(a, b), c);
+    *hi = max3(max3(a, b), c);
 }
 
 /* The point a triangle is sorted by: the centre of its box. */

@@ -22,7 +22,7 @@ typedef uint key_t;
  * A zero-extent axis maps to cell 0 (no division by zero, no NaN); an extent
  * that overflows float32 is measured on halved values; the result is clamped
  * before the cast because converting NaN or out-of-range floats to integers is
- * undefined in C. fmax(NaN, 0) is 0, so even a NaN lands in cell 0. */
+ * undefined in C. The clamp is written so that a NaN lands in cell 0. */
 inline uint quantise(float c, float lo, float hi) {
     float extent = hi - lo;
     float offset = c - lo;
@@ -31,7 +31,9 @@ inline uint quantise(float c, float lo, float hi) {
         offset = c * 0.5f - lo * 0.5f;
     }
     float t = extent > 0.0f ? offset / extent : 0.0f;
-    float q = fmin(fmax(t * AXIS_CELLS, 0.0f), AXIS_MAX);
+    float q = t * AXIS_CELLS;
+    q = q > 0.0f ? q : 0.0f;  /* NaN compares false: 0 */
+    q = q < AXIS_MAX ? q : AXIS_MAX;
     return (uint)q;
 }
 

@@ -19,8 +19,8 @@
 #include "common.h"
 
 inline void store_box(__global float *node_floats, int node, float3 lo, float3 hi) {
-    vstore3(lo, 0, node_floats + 8 * node);
-    vstore3(hi, 0, node_floats + 8 * node + 4);
+    store_float3(node_floats + 8 * node, lo);
+    store_float3(node_floats + 8 * node + 4, hi);
 }
 
 inline void load_box_volatile(volatile __global float *node_floats, int node,
@@ -48,8 +48,8 @@ __kernel void refit(__global const float4 *boxes /* lo, hi per triangle (bounds.
         float3 lo = boxes[2 * t0].xyz, hi = boxes[2 * t0 + 1].xyz;
         for (int s = 1; s < count; ++s) {
             const int t = prim_order[slot + s];
-            lo = fmin(lo, boxes[2 * t].xyz);
-            hi = fmax(hi, boxes[2 * t + 1].xyz);
+            lo = min3(lo, boxes[2 * t].xyz);
+            hi = max3(hi, boxes[2 * t + 1].xyz);
         }
         store_box(node_floats, node, lo, hi);
         for (;;) {
@@ -59,8 +59,8 @@ __kernel void refit(__global const float4 *boxes /* lo, hi per triangle (bounds.
             const int sibling = left == node ? node_words[8 * p + 7] : left;
             float3 slo, shi;
             load_box_volatile(node_floats, sibling, &slo, &shi);
-            lo = fmin(lo, slo);
-            hi = fmax(hi, shi);
+            lo = min3(lo, slo);
+            hi = max3(hi, shi);
             store_box(node_floats, p, lo, hi);
             node = p;
         }
