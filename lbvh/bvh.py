@@ -176,8 +176,9 @@ class BVH:
         return intersect(self, origins, directions, tmin, tmax, **options)
 
     def occluded(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf,
-                 **options: Any) -> np.ndarray:
-        """Whether each ray hits anything in [tmin, tmax]; see :func:`lbvh.traverse.occluded`."""
+                 **options: Any):
+        """Whether each ray hits anything in [tmin, tmax]: ``bool (N,)``, or a
+        :class:`lbvh.traverse.Hits` with ``return_hits=True``; see :func:`lbvh.traverse.occluded`."""
         from .traverse import occluded
         return occluded(self, origins, directions, tmin, tmax, **options)
 

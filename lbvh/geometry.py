@@ -17,16 +17,22 @@ def _first_row(mask: np.ndarray) -> int:
     return int(np.flatnonzero(mask.reshape(len(mask), -1).any(axis=1))[0])
 
 
-def as_vertices(vertices: Any) -> np.ndarray:
-    """Return ``float32 (V, 3)`` C-contiguous vertices, or raise ``ValueError``."""
+def real_array(name: str, value: Any) -> np.ndarray:
+    """``value`` as a numpy array of a real number type, or a ``ValueError`` naming ``name``."""
     try:
-        arr = np.asarray(vertices)
+        arr = np.asarray(value)
     except Exception as exc:  # ragged lists and the like
-        raise ValueError(f"vertices: cannot be read as an array ({exc})") from None
+        raise ValueError(f"{name}: cannot be read as an array ({exc})") from None
     if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating)
                                    or np.issubdtype(arr.dtype, np.integer)):
-        raise ValueError(f"vertices: dtype {arr.dtype} is not a real number type "
+        raise ValueError(f"{name}: dtype {arr.dtype} is not a real number type "
                          "(expected float32, float64 or an integer type)")
+    return arr
+
+
+def as_vertices(vertices: Any) -> np.ndarray:
+    """Return ``float32 (V, 3)`` C-contiguous vertices, or raise ``ValueError``."""
+    arr = real_array("vertices", vertices)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"vertices: shape {arr.shape}, expected (V, 3)")
     if len(arr) == 0:

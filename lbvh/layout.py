@@ -63,14 +63,14 @@ def parents_of(nodes: np.ndarray, root: int) -> np.ndarray:
 def node_depths(parent: np.ndarray, root: int) -> np.ndarray:
     """Depth of each node (root = 0) by pointer jumping over the parent links.
 
-    Runs O(log depth) vectorised passes; assumes the links form a tree (run the
-    validator first on untrusted input).
+    Runs O(log depth) vectorised passes. Links that do not reach the root (a
+    cycle) raise ``ValueError`` instead of looping forever.
     """
     n = len(parent)
     depth = np.where(np.arange(n) == root, 0, 1).astype(np.int64)
     up = parent.astype(np.int64).copy()
     up[root] = -1
-    while True:
+    for _ in range(max(n, 2).bit_length() + 2):
         active = up >= 0
         if not active.any():
             return depth
@@ -79,3 +79,5 @@ def node_depths(parent: np.ndarray, root: int) -> np.ndarray:
         nxt = up.copy()
         nxt[idx] = up[up[idx]]
         up = nxt
+    raise ValueError(f"parent links of node {int(np.flatnonzero(up >= 0)[0])} never reach "
+                     f"the root {root} (a cycle)")

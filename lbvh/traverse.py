@@ -36,6 +36,7 @@ import numpy as np
 import pyopencl as cl
 
 from . import device as dev
+from .geometry import real_array
 
 KERNEL_FILE = "traverse.cl"
 
@@ -117,26 +118,13 @@ class DeviceHits:
 
 # -- validation -----------------------------------------------------------------
 
-def _real_array(name: str, value: Any) -> np.ndarray:
-    """``value`` as a numpy array of a real number type, or ``ValueError``."""
-    try:
-        arr = np.asarray(value)
-    except Exception as exc:  # ragged lists and the like
-        raise ValueError(f"{name}: cannot be read as an array ({exc})") from None
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating)
-                                   or np.issubdtype(arr.dtype, np.integer)):
-        raise ValueError(f"{name}: dtype {arr.dtype} is not a real number type "
-                         "(expected float32, float64 or an integer type)")
-    return arr
-
-
 def _first_bad(mask: np.ndarray) -> int:
     return int(np.flatnonzero(mask)[0])
 
 
 def _ray_vectors(name: str, value: Any, count: int | None) -> np.ndarray:
     """The caller's ``(N, 3)`` array, shape and dtype checked (values are checked packed)."""
-    arr = _real_array(name, value)
+    arr = real_array(name, value)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{name}: shape {arr.shape}, expected (N, 3)")
     if count is not None and len(arr) != count:
@@ -146,7 +134,7 @@ def _ray_vectors(name: str, value: Any, count: int | None) -> np.ndarray:
 
 def _interval(name: str, value: Any, count: int) -> np.ndarray:
     """The caller's scalar or ``(N,)`` array, shape and dtype checked."""
-    arr = _real_array(name, value)
+    arr = real_array(name, value)
     if arr.ndim != 0 and arr.shape != (count,):
         raise ValueError(f"{name}: shape {arr.shape}, expected a scalar or ({count},)")
     return arr
