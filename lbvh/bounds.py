@@ -18,9 +18,9 @@ def triangle_bounds(ctx: Context, mem: MemoryTracker, vertices: cl.Buffer, faces
                     n: int) -> tuple[cl.Buffer, cl.Buffer, list[cl.Event]]:
     """Device triangle boxes (``2n`` float4: lo, hi), the centroid box (2 float4) and the events."""
     launch = ctx.launch(n, gpu_per_item=-(-n // 4096))
-    boxes = mem.alloc(32 * n)
-    partial = mem.alloc(32 * launch.global_size)
-    out = mem.alloc(32)
+    boxes = mem.alloc(32 * n, scratch=True)
+    partial = mem.alloc(32 * launch.global_size, scratch=True)
+    out = mem.alloc(32, scratch=True)
     ev1 = ctx.kernel(KERNEL_FILE, "triangle_bounds")(
         ctx.queue, (launch.global_size,), launch.local, vertices, faces, np.int32(n),
         np.int32(launch.per_item), boxes, partial)

@@ -140,11 +140,12 @@ def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl
     mem.free(result.keys)
     prim_order = result.values
 
-    arrivals = mem.alloc(4 * (2 * n - 1))
+    arrivals = mem.alloc(4 * (2 * n - 1), scratch=True)
     events["refit"] += refit_from_boxes(ctx, boxes, prim_order, nodes, parent, arrivals, n, 2 * n - 1)
     ctx.queue.finish()
     wall = time.perf_counter() - t0
     mem.free(arrivals, boxes)
+    mem.close()
 
     phase_seconds = {phase: dev.event_seconds(evs) for phase, evs in events.items()}
     report = BuildReport(device=ctx.name, builder="lbvh", num_triangles=n, key_bits=bits,

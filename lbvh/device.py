@@ -116,6 +116,7 @@ class Context:
     queue: cl.CommandQueue = field(init=False)
     _programs: dict = field(init=False, default_factory=dict)
     _kernels: dict = field(init=False, default_factory=dict)
+    _scratch: dict = field(init=False, default_factory=dict)
     _lock: threading.Lock = field(init=False, default_factory=threading.Lock)
 
     def __post_init__(self) -> None:
@@ -146,6 +147,35 @@ class Context:
         per_item = max(1, int(gpu_per_item))
         items = max(1, -(-count // per_item))
         return Launch(count, per_item, -(-items // local) * local, local)
+
+    # -- scratch buffers kept between builds --------------------------------
+    # Fresh device memory is paid for with page faults on first touch: about a
+    # quarter of a 1M-triangle build on PoCL. A build's scratch buffers (boxes,
+    # keys, counters) go back to this pool and serve the next build of the same
+    # size; trim_scratch() keeps only one build's worth.
+    def take_scratch(self, nbytes: int) -> cl.Buffer | None:
+        with self._lock:
+            free = self._scratch.get(nbytes)
+            return free.pop() if free else None
+
+    def give_scratch(self, buf: cl.Buffer, nbytes: int) -> None:
+        with self._lock:
+            self._scratch.setdefault(nbytes, []).append(buf)
+
+    def trim_scratch(self, keep: dict[int, int] | None = None) -> None:
+        """Release pooled scratch beyond ``keep`` (bytes -> how many buffers); all without it."""
+        with self._lock:
+            for nbytes, bufs in list(self._scratch.items()):
+                limit = (keep or {}).get(nbytes, 0)
+                while len(bufs) > limit:
+                    bufs.pop().release()
+                if not bufs:
+                    del self._scratch[nbytes]
+
+    def scratch_bytes(self) -> int:
+        """Device bytes held in the scratch pool between builds."""
+        with self._lock:
+            return sum(n * len(b) for n, b in self._scratch.items())
 
     # -- programs ------------------------------------------------------------
     def program(self, filename: str, defines: dict[str, int | str] | None = None) -> cl.Program:
@@ -251,30 +281,52 @@ class MemoryTracker:
     """Counts the device bytes a build holds, to report its peak.
 
     Buffers are allocated through :meth:`alloc` and given back with
-    :meth:`free` as soon as a stage no longer needs them.
+    :meth:`free` as soon as a stage no longer needs them. Scratch buffers
+    (``scratch=True``: nothing of them outlives the build) come from and go
+    back to the context's pool; :meth:`close` trims the pool to what this
+    build used.
     """
 
     def __init__(self, ctx: Context) -> None:
         self.ctx = ctx
         self.live = 0
         self.peak = 0
-        self._sizes: dict[int, int] = {}
+        self._sizes: dict[int, tuple[int, bool]] = {}
+        self._scratch_used: dict[int, int] = {}
 
-    def alloc(self, nbytes: int) -> cl.Buffer:
+    def alloc(self, nbytes: int, scratch: bool = False) -> cl.Buffer:
         nbytes = max(int(nbytes), 4)
-        try:
-            buf = cl.Buffer(self.ctx.ctx, cl.mem_flags.READ_WRITE, nbytes)
-        except cl.Error as exc:
-            raise DeviceError(f"lbvh: allocating {nbytes:,} bytes on {self.ctx.name} failed "
-                              f"(device limit per buffer {self.ctx.device.max_mem_alloc_size:,}): {exc}") from exc
-        self._sizes[id(buf)] = nbytes
+        buf = self.ctx.take_scratch(nbytes) if scratch else None
+        if buf is None:
+            max_alloc = int(self.ctx.device.max_mem_alloc_size)
+            if nbytes > max_alloc:
+                raise DeviceError(f"lbvh: a buffer of {nbytes:,} bytes exceeds {self.ctx.name}'s "
+                                  f"largest allocation ({max_alloc:,} bytes); the mesh is too large "
+                                  "for this device")
+            try:
+                buf = cl.Buffer(self.ctx.ctx, cl.mem_flags.READ_WRITE, nbytes)
+            except cl.Error as exc:
+                raise DeviceError(f"lbvh: allocating {nbytes:,} bytes on {self.ctx.name} failed: "
+                                  f"{exc}") from exc
+        if scratch:
+            self._scratch_used[nbytes] = self._scratch_used.get(nbytes, 0) + 1
+        self._sizes[id(buf)] = (nbytes, scratch)
         self.live += nbytes
         self.peak = max(self.peak, self.live)
         return buf
 
     def free(self, *bufs: cl.Buffer) -> None:
         for buf in bufs:
-            nbytes = self._sizes.pop(id(buf), None)
-            if nbytes is not None:
-                self.live -= nbytes
+            entry = self._sizes.pop(id(buf), None)
+            if entry is None:
+                continue
+            nbytes, scratch = entry
+            self.live -= nbytes
+            if scratch:
+                self.ctx.give_scratch(buf, nbytes)
+            else:
                 buf.release()
+
+    def close(self) -> None:
+        """Keep in the pool only the scratch this build used (for the next one)."""
+        self.ctx.trim_scratch(self._scratch_used)

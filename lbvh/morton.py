@@ -35,7 +35,7 @@ def morton_codes(ctx: Context, mem: MemoryTracker, boxes: cl.Buffer,
                  centroid_box: cl.Buffer, n: int, key_bits: int
                  ) -> tuple[cl.Buffer, cl.Buffer, list[cl.Event]]:
     """Device keys (``uint32`` or ``uint64``) and values (triangle index) for ``n`` triangle boxes."""
-    keys = mem.alloc(n * KEY_DTYPE[key_bits].itemsize)
+    keys = mem.alloc(n * KEY_DTYPE[key_bits].itemsize, scratch=True)
     values = mem.alloc(n * 4)
     launch = ctx.launch(n)
     ev = ctx.kernel(KERNEL_FILE, "morton_codes", {"KEY_BITS": key_bits})(
@@ -48,7 +48,7 @@ def count_duplicates(ctx: Context, mem: MemoryTracker, sorted_keys: cl.Buffer, n
                      key_bits: int) -> tuple[int, list[cl.Event]]:
     """Number of sorted keys equal to their predecessor (read back: it steers the build)."""
     launch = ctx.launch(n, gpu_per_item=-(-n // 4096))
-    partial = mem.alloc(4 * launch.global_size)
+    partial = mem.alloc(4 * launch.global_size, scratch=True)
     ev = ctx.kernel(KERNEL_FILE, "count_duplicates", {"KEY_BITS": key_bits})(
         ctx.queue, (launch.global_size,), launch.local, sorted_keys, np.int32(n),
         np.int32(launch.per_item), partial)

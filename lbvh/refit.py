@@ -47,11 +47,12 @@ def refit_boxes(ctx: Context, vertices: cl.Buffer, faces: cl.Buffer, prim_order:
     """Refit after the vertices moved: triangle boxes (stage 1), then the bottom-up pass."""
     mem = MemoryTracker(ctx)
     boxes, centroid_box, events = triangle_bounds(ctx, mem, vertices, faces, num_prims)
-    arrivals = mem.alloc(4 * num_nodes)
+    arrivals = mem.alloc(4 * num_nodes, scratch=True)
     events += refit_from_boxes(ctx, boxes, prim_order, nodes, parent, arrivals, num_prims,
                                num_nodes, leaf_nodes)
     ctx.queue.finish()
     mem.free(boxes, centroid_box, arrivals)
+    mem.close()
     return events
 
 

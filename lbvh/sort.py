@@ -36,8 +36,8 @@ def varying_bits(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, n: int, key_
     """Mask of the key bits that are not the same in every key (read back: it picks the passes)."""
     dtype = np.uint64 if key_bits == 64 else np.uint32
     launch = ctx.launch(n, gpu_per_item=-(-n // 4096))
-    and_buf = mem.alloc(launch.global_size * np.dtype(dtype).itemsize)
-    or_buf = mem.alloc(launch.global_size * np.dtype(dtype).itemsize)
+    and_buf = mem.alloc(launch.global_size * np.dtype(dtype).itemsize, scratch=True)
+    or_buf = mem.alloc(launch.global_size * np.dtype(dtype).itemsize, scratch=True)
     ev = ctx.kernel(KERNEL_FILE, "key_bits", _defines(key_bits))(
         ctx.queue, (launch.global_size,), launch.local, keys, np.int32(n),
         np.int32(launch.per_item), and_buf, or_buf)
@@ -77,9 +77,9 @@ def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buf
     itemsize = 8 if key_bits == 64 else 4
     launch = ctx.launch(n, min_per_item=4096, gpu_per_item=max(1, -(-n // 65536)))
     chunks = launch.global_size
-    counts = mem.alloc(4 * radix * chunks)
-    totals = mem.alloc(4 * radix)
-    keys_alt = mem.alloc(n * itemsize)
+    counts = mem.alloc(4 * radix * chunks, scratch=True)
+    totals = mem.alloc(4 * radix, scratch=True)
+    keys_alt = mem.alloc(n * itemsize, scratch=True)
     values_alt = mem.alloc(n * 4)
     defines = _defines(key_bits, radix_bits)
     hist_k = ctx.kernel(KERNEL_FILE, "digit_histogram", defines)

@@ -170,3 +170,16 @@ def test_build_with_leaf_collapse():
     assert sizes.max() <= 4 and sizes.sum() == len(f) and bvh.num_nodes < plain.num_nodes
     assert lbvh.sah_cost(bvh) <= lbvh.sah_cost(plain)
     assert bvh.builder == "lbvh+collapse"
+
+
+def test_scratch_pool_holds_one_build_and_is_reused(ctx):
+    v, f = random_soup(20000, seed=21)
+    first = lbvh.build(v, f, key_bits=30)
+    held = ctx.scratch_bytes()
+    assert held >= 32 * len(f)  # at least the triangle boxes stay pooled
+    second = lbvh.build(v, f, key_bits=30)
+    assert ctx.scratch_bytes() == held  # the same buffers went round again
+    assert np.array_equal(first.nodes, second.nodes)
+    ctx.trim_scratch()
+    assert ctx.scratch_bytes() == 0
+    lbvh.build(v, f, key_bits=30).validate()
