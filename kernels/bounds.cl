@@ -24,14 +24,14 @@ __kernel void triangle_bounds(__global const float *vertices,
     for (int t = first; t < last; ++t) {
         float3 lo, hi;
         triangle_box(vertices, faces, t, &lo, &hi);
-        boxes[2 * t] = (float4)(lo, 0.0f);
-        boxes[2 * t + 1] = (float4)(hi, 0.0f);
+        boxes[2 * t] = (float4)(lo.x, lo.y, lo.z, 0.0f);
+        boxes[2 * t + 1] = (float4)(hi.x, hi.y, hi.z, 0.0f);
         float3 c = box_centre(lo, hi);
         cmin = min3(cmin, c);
         cmax = max3(cmax, c);
     }
-    partial[2 * gid] = (float4)(cmin, 0.0f);
-    partial[2 * gid + 1] = (float4)(cmax, 0.0f);
+    partial[2 * gid] = (float4)(cmin.x, cmin.y, cmin.z, 0.0f);
+    partial[2 * gid + 1] = (float4)(cmax.x, cmax.y, cmax.z, 0.0f);
 }
 
 /* Second level: one work-item folds `count` partial boxes into out[0], out[1]. */
@@ -43,6 +43,6 @@ __kernel void reduce_boxes(__global const float4 *partial, const int count,
         lo = min3(lo, partial[2 * i].xyz);
         hi = max3(hi, partial[2 * i + 1].xyz);
     }
-    out[0] = (float4)(lo, 0.0f);
-    out[1] = (float4)(hi, 0.0f);
+    out[0] = (float4)(lo.x, lo.y, lo.z, 0.0f);
+    out[1] = (float4)(hi.x, hi.y, hi.z, 0.0f);
 }
