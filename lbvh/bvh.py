@@ -12,7 +12,7 @@ from . import device as dev
 from .geometry import as_faces, as_vertices
 from .layout import NODE_DTYPE, children_of, is_leaf, node_depths, parents_of, prim_range_of
 from .report import BuildReport, tree_statistics
-from .validate import validate_tree
+from .validate import BVHValidationError, validate_tree
 
 SAVE_FORMAT_VERSION = 1
 
@@ -64,14 +64,31 @@ class BVH:
     @classmethod
     def from_arrays(cls, nodes: np.ndarray, prim_order: np.ndarray, root: int,
                     vertices: np.ndarray, faces: np.ndarray, *, builder: str,
-                    device: Any = None, report: BuildReport | None = None) -> "BVH":
-        """Upload a tree built on the host in the project's layout."""
-        ctx = dev.get_context(device)
+                    device: Any = None, report: BuildReport | None = None,
+                    validate: bool = True) -> "BVH":
+        """Upload a tree built on the host in the project's layout.
+
+        With ``validate`` (the default) the tree is checked first and a broken
+        one raises ``BVHValidationError`` (a ``ValueError``) before anything is
+        uploaded.
+        """
         nodes = np.ascontiguousarray(nodes, dtype=NODE_DTYPE)
         prim_order = np.ascontiguousarray(prim_order, dtype=np.int32)
         vertices = as_vertices(vertices)
         faces = as_faces(faces, len(vertices))
+        root = int(root)
+        if not 0 <= root < len(nodes):
+            raise BVHValidationError(f"invalid BVH: root {root} outside [0, {len(nodes)})")
+        kids = children_of(nodes)
+        outside = (kids >= len(nodes)).any(axis=1) | ((kids < 0) & ~is_leaf(nodes)[:, None]).any(axis=1)
+        if outside.any():
+            i = int(np.flatnonzero(outside)[0])
+            raise BVHValidationError(f"invalid BVH: node {i} has child index {kids[i].tolist()} "
+                                     f"outside [0, {len(nodes)})")
         parent = parents_of(nodes, root)
+        if validate:
+            validate_tree(nodes, parent, prim_order, root, vertices, faces)
+        ctx = dev.get_context(device)
         leaf_nodes = np.flatnonzero(is_leaf(nodes)).astype(np.int32)
         rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
         bvh = cls(ctx, vertices, faces, dev.to_device(ctx, vertices), dev.to_device(ctx, faces),
@@ -199,8 +216,8 @@ def load(path: str | os.PathLike, device: Any = None) -> BVH:
     path = Path(path)
     try:
         data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: not a saved lbvh BVH ({exc})") from None
+    except Exception as exc:  # OSError, ValueError, zipfile.BadZipFile, EOFError...
+        raise ValueError(f"{path}: not a saved lbvh BVH ({type(exc).__name__}: {exc})") from None
     with data:
         missing = {"format_version", "nodes", "prim_order", "root", "vertices", "faces"} - set(data.files)
         if missing:
@@ -212,6 +229,9 @@ def load(path: str | os.PathLike, device: Any = None) -> BVH:
         if nodes.dtype != NODE_DTYPE:
             raise ValueError(f"{path}: nodes have dtype {nodes.dtype}, expected {NODE_DTYPE}")
         builder = str(data["builder"]) if "builder" in data.files else "loaded"
-        bvh = BVH.from_arrays(nodes, data["prim_order"], int(data["root"]), data["vertices"],
-                              data["faces"], builder=builder, device=device)
+        try:
+            bvh = BVH.from_arrays(nodes, data["prim_order"], int(data["root"]), data["vertices"],
+                                  data["faces"], builder=builder, device=device)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
     return bvh

@@ -284,6 +284,12 @@ def render(bvh: Any, camera: Camera, mode: str = "normals", *, ao_samples: int =
     Returns:
         :class:`RenderResult` with the float image and the timings.
     """
+    from .bvh import BVH
+
+    if not isinstance(bvh, BVH):
+        raise ValueError(f"bvh: expected an lbvh.BVH, got {type(bvh).__name__}")
+    if not isinstance(camera, Camera):
+        raise ValueError(f"camera: expected an lbvh.Camera, got {type(camera).__name__}")
     check_mode(mode)
     start = time.perf_counter()
     tracer = _Tracer(bvh, triangle_test)

@@ -66,6 +66,12 @@ def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
                          f"(expected one of {', '.join(sorted(MESH_SUFFIXES))})")
     try:
         loaded = trimesh.load(str(path), process=False, force=None)
+    except ImportError as exc:
+        # trimesh reaches for optional modules (charset_normalizer to decode
+        # text) only once the file failed to parse as what its suffix says
+        raise ValueError(f"{path}: not a valid {path.suffix.lstrip('.').upper()} file "
+                         f"(trimesh could not parse it; it wanted the optional module "
+                         f"{exc.name!r} for a last try)") from None
     except Exception as exc:  # trimesh raises many kinds on a broken file
         raise ValueError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     if isinstance(loaded, trimesh.Scene):
