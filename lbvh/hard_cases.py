@@ -483,6 +483,20 @@ def rays_in_face_planes(n: int = 4) -> Case:
                      "edges, and from outside the cube)", o, np.concatenate([d, axis_d]))
 
 
+def scaled_directions(count: int = 1025, scale: float = 1e-35, size: float = 1000.0) -> Case:
+    """The scene and rays of :func:`few_triangles` grown ``size`` times, with the
+    directions scaled by ``scale`` and by ``1 / scale``: the same hits at ``t / scale``
+    and ``t * scale`` (``t`` times a triangle's area passes float32's range)."""
+    base = few_triangles(count)
+    v = base.vertices * np.float32(size)
+    o = np.concatenate([base.origins, base.origins]) * np.float32(size)
+    d = np.concatenate([base.directions.astype(np.float64) * scale,
+                        base.directions.astype(np.float64) / scale]) * size
+    return make_case("scaled_directions", v, base.faces,
+                     f"directions of length {scale:g} and {1 / scale:g}: hits at t near "
+                     f"{1 / scale:g} and {scale:g}", o, d)
+
+
 # -- 11: deep trees -----------------------------------------------------------------
 
 def _tiny_triangles_at(centres: np.ndarray, half: float) -> np.ndarray:
@@ -623,6 +637,7 @@ CASES: dict[str, Callable[[], Case]] = {
     "axis_rays_signed_zeros": axis_rays_signed_zeros,
     "rays_on_surface": rays_on_surface,
     "rays_in_face_planes": rays_in_face_planes,
+    "scaled_directions": scaled_directions,
     "closed_cube_vertices_edges": closed_cube_vertices_edges,
     "closed_sphere_vertices_edges": closed_sphere_vertices_edges,
     "exponential_spacing": exponential_spacing,
@@ -642,7 +657,7 @@ ISSUE_CASE: dict[str, int] = {
     "tiny_coordinates": 6, "denormal_coordinates": 6, "far_from_origin": 7,
     "far_from_origin_1e7": 7, "mixed_scales": 8, "1_triangle": 9, "2_triangles": 9,
     "1025_triangles": 9, "axis_rays_signed_zeros": 10, "rays_on_surface": 10,
-    "rays_in_face_planes": 10, "closed_cube_vertices_edges": 10,
+    "rays_in_face_planes": 10, "scaled_directions": 10, "closed_cube_vertices_edges": 10,
     "closed_sphere_vertices_edges": 10, "exponential_spacing": 11, "deep_morton_chain_30": 11,
     "deep_morton_chain_63": 11, "deep_sah_chain": 11, "deep_sah_chain_mid": 11,
     "deep_morton_chain_63_stack4": 11,
