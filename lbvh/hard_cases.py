@@ -578,9 +578,9 @@ def exponential_spacing(count: int = 120) -> Case:
                      axis_rays=32)
 
 
-def small_stack(case: Case, stack_size: int = 4) -> Case:
+def small_stack(case: Case, stack_size: int = 4, name: str | None = None) -> Case:
     """The same scene and rays traversed with a tiny stack: overflows must be reported."""
-    return Case(f"{case.name}_stack{stack_size}", case.vertices, case.faces,
+    return Case(name or f"{case.name}_stack{stack_size}", case.vertices, case.faces,
                 f"{case.why}; traversed with a {stack_size}-entry stack", case.origins,
                 case.directions, case.tmin, case.tmax, stack_size=stack_size,
                 must_hit=case.must_hit)
@@ -646,7 +646,8 @@ CASES: dict[str, Callable[[], Case]] = {
     "deep_sah_chain": deep_sah_chain,
     "deep_sah_chain_mid": lambda: deep_sah_chain(top=50, bottom=-31, name="deep_sah_chain_mid"),
     "deep_morton_chain_63_stack4": lambda: small_stack(deep_morton_chain(21)),
-    "closed_sphere_stack2": lambda: small_stack(closed_sphere_vertices_edges(), 2),
+    "closed_sphere_stack2": lambda: small_stack(closed_sphere_vertices_edges(), 2,
+                                                "closed_sphere_stack2"),
     "over_2_24_triangles": over_2_24_triangles,
 }
 

@@ -113,6 +113,15 @@ def test_hits(name, builder):
 
 # -- what makes each case hard, checked --------------------------------------------------
 
+def test_every_case_is_named_and_numbered_as_in_the_catalogue():
+    for name in CASES:
+        c = case(name)
+        assert c.name == name and hard_cases.ISSUE_CASE[name] in range(1, 13)
+        assert c.num_rays > 0 and c.tmin.shape == c.tmax.shape == (c.num_rays,)
+    assert set(hard_cases.ISSUE_CASE) == set(hard_cases.CASES)
+    assert set(hard_cases.ISSUE_CASE.values()) == set(range(1, 13))  # every item of issue 5
+
+
 def test_identical_triangles_give_equal_codes_and_ties():
     c = case("identical_triangles")
     assert len(c.faces) >= 20000 and (c.vertices.reshape(-1, 3, 3) == c.vertices[:3]).all()
