@@ -81,6 +81,8 @@ typedef struct {
      * the shear constants. */
     int kx, ky, kz;
     float px, py, pz;
+    /* t is measured along d * 2^-texp (see make_ray); 0 for ordinary rays. */
+    int texp;
     float sx, sy, sz;
 } Ray;
 
@@ -90,6 +92,19 @@ inline Ray make_ray(__global const float *r) {
     Ray ray;
     ray.ox = r[0]; ray.oy = r[1]; ray.oz = r[2]; ray.tmin = r[3];
     ray.dx = r[4]; ray.dy = r[5]; ray.dz = r[6]; ray.tmax = r[7];
+    /* A direction far from unit length (tiny or denormal components, or
+     * huge ones) makes 1/d and the shear constants leave float32's range.
+     * Scaling d by a power of two (and t the other way) is exact, so such a
+     * ray is traced as d * 2^-texp and its t scaled back at the end. */
+    ray.texp = 0;
+    const float dmax = fmax(fmax(fabs(ray.dx), fabs(ray.dy)), fabs(ray.dz));
+    if (dmax < 0x1p-60f || dmax > 0x1p60f) {
+        int e;
+        (void)frexp(dmax, &e);
+        ray.texp = e;
+        ray.dx = ldexp(ray.dx, -e); ray.dy = ldexp(ray.dy, -e); ray.dz = ldexp(ray.dz, -e);
+        ray.tmin = ldexp(ray.tmin, e); ray.tmax = ldexp(ray.tmax, e);
+    }
     ray.ix = 1.0f / ray.dx;
     ray.iy = 1.0f / ray.dy;
     ray.iz = 1.0f / ray.dz;
@@ -168,6 +183,30 @@ inline int degenerate(__global const float *vertices, int i0, int i1, int i2) {
 
 /* One triangle against the ray; on a hit with tmin <= t <= tmax and t < *best,
  * updates *best, *bu, *bv and returns 1. Zero-area triangles never hit. */
+#if TRIANGLE_TEST == TEST_WATERTIGHT && defined(WATERTIGHT_FP64)
+/* The watertight test in double from the sheared float coordinates (see below). */
+inline int hit_triangle_fp64(__global const float *vertices, int i0, int i1, int i2,
+                             const Ray *ray, float ax, float ay, float az, float bx, float by,
+                             float bz, float cx, float cy, float cz,
+                             float *best, float *bu, float *bv) {
+    const double U = (double)cx * (double)by - (double)cy * (double)bx;
+    const double V = (double)ax * (double)cy - (double)ay * (double)cx;
+    const double W = (double)bx * (double)ay - (double)by * (double)ax;
+    if ((U < 0.0 || V < 0.0 || W < 0.0) && (U > 0.0 || V > 0.0 || W > 0.0)) return 0;
+    const double det = U + V + W;
+    if (det == 0.0) return 0;
+    const double sz = (double)ray->sz;
+    const double T = U * (sz * (double)az) + V * (sz * (double)bz) + W * (sz * (double)cz);
+    const float t = (float)(T / det);
+    if (!(t >= ray->tmin && t <= ray->tmax && t < *best)) return 0;
+    if (degenerate(vertices, i0, i1, i2)) return 0;
+    *best = t;
+    *bu = (float)(V / det);
+    *bv = (float)(W / det);
+    return 1;
+}
+#endif
+
 #if TRIANGLE_TEST == TEST_WATERTIGHT
 /* Woop, Benthin, Wald 2013, "Watertight Ray/Triangle Intersection", JCGT 2(1):
  * translate to the origin, permute and shear so that the ray is +z, then 2D
@@ -185,22 +224,23 @@ inline int hit_triangle(__global const float *vertices, int i0, int i1, int i2, 
     const float by = (vertices[i1 + ky] - ray->py) - ray->sy * bz;
     const float cx = (vertices[i2 + kx] - ray->px) - ray->sx * cz;
     const float cy = (vertices[i2 + ky] - ray->py) - ray->sy * cz;
-    float U = cx * by - cy * bx;
-    float V = ax * cy - ay * cx;
-    float W = bx * ay - by * ax;
+    const float U = cx * by - cy * bx;
+    const float V = ax * cy - ay * cx;
+    const float W = bx * ay - by * ax;
+    const float det = U + V + W;
+    const float T = U * (ray->sz * az) + V * (ray->sz * bz) + W * (ray->sz * cz);
 #ifdef WATERTIGHT_FP64
     /* Section 3.3: an edge function that rounds to zero is recomputed in
-     * double, where products of floats are exact and its sign is right. */
-    if (U == 0.0f || V == 0.0f || W == 0.0f) {
-        U = (float)((double)cx * (double)by - (double)cy * (double)bx);
-        V = (float)((double)ax * (double)cy - (double)ay * (double)cx);
-        W = (float)((double)bx * (double)ay - (double)by * (double)ax);
-    }
+     * double, where products of floats are exact and its sign is right. The
+     * same is done when the float32 products leave float32's range (triangles
+     * ~1e19 or ~1e-23 in size around the ray, or tiny ray directions): then
+     * the whole test runs in double and only t, u, v return to float. */
+    if (U == 0.0f || V == 0.0f || W == 0.0f || !(fabs(det) <= FLT_MAX) || !(fabs(T) <= FLT_MAX))
+        return hit_triangle_fp64(vertices, i0, i1, i2, ray, ax, ay, az, bx, by, bz, cx, cy, cz,
+                                 best, bu, bv);
 #endif
     if ((U < 0.0f || V < 0.0f || W < 0.0f) && (U > 0.0f || V > 0.0f || W > 0.0f)) return 0;
-    const float det = U + V + W;
     if (det == 0.0f) return 0;
-    const float T = U * (ray->sz * az) + V * (ray->sz * bz) + W * (ray->sz * cz);
     const float t = T / det;
     if (!(t >= ray->tmin && t <= ray->tmax && t < *best)) return 0;
     if (degenerate(vertices, i0, i1, i2)) return 0;
@@ -316,6 +356,7 @@ __kernel void traverse(__global const float4 *nodes, __global const int *prim_or
             }
         }
         /* + 0.0f turns a t of -0.0 (T = -0) into +0.0 */
+        if (ray.texp != 0) best = ldexp(best, -ray.texp);
         hits[i] = (float4)(best + 0.0f, bu, bv, as_float(best_prim));
         flags[i] = flag;
 #if COUNTERS

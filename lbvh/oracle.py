@@ -124,25 +124,36 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
         x.append(rel[0] - sx * rel[2])
         y.append(rel[1] - sy * rel[2])
     (ax, bx, cx), (ay, by, cy) = x, y
-    U = cx * by - cy * bx
-    V = ax * cy - ay * cx
-    W = bx * ay - by * ax
-    if dtype == np.float32:
-        # The kernel recomputes in double when an edge function rounds to zero.
-        redo = (U == 0) | (V == 0) | (W == 0)
-        if redo.any():
-            d = [q[redo].astype(np.float64) for q in (ax, ay, bx, by, cx, cy)]
-            U[redo] = (d[4] * d[3] - d[5] * d[2]).astype(np.float32)
-            V[redo] = (d[0] * d[5] - d[1] * d[4]).astype(np.float32)
-            W[redo] = (d[2] * d[1] - d[3] * d[0]).astype(np.float32)
-    inside = ~(((U < 0) | (V < 0) | (W < 0)) & ((U > 0) | (V > 0) | (W > 0)))
-    det = U + V + W
-    inside &= (det != 0) & ~skip[tri]
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
+        U = cx * by - cy * bx
+        V = ax * cy - ay * cx
+        W = bx * ay - by * ax
+        det = U + V + W
         T = U * (sz * z[0]) + V * (sz * z[1]) + W * (sz * z[2])
+        inside = ~(((U < 0) | (V < 0) | (W < 0)) & ((U > 0) | (V > 0) | (W > 0))) & (det != 0)
         t = T / det
         bu = V / det
         bv = W / det
+        if dtype == np.float32:
+            # The kernel redoes the test in double when an edge function rounds
+            # to zero or a product leaves float32's range; only t, u, v go back.
+            big = np.float32(np.finfo(np.float32).max)
+            redo = ((U == 0) | (V == 0) | (W == 0) | ~(np.abs(det) <= big) | ~(np.abs(T) <= big))
+            if redo.any():
+                d = [q[redo].astype(np.float64) for q in (ax, ay, bx, by, cx, cy)]
+                zd = [q[redo].astype(np.float64) for q in z]
+                Ud = d[4] * d[3] - d[5] * d[2]
+                Vd = d[0] * d[5] - d[1] * d[4]
+                Wd = d[2] * d[1] - d[3] * d[0]
+                detd = Ud + Vd + Wd
+                szd = sz[redo].astype(np.float64)
+                Td = Ud * (szd * zd[0]) + Vd * (szd * zd[1]) + Wd * (szd * zd[2])
+                inside[redo] = (~(((Ud < 0) | (Vd < 0) | (Wd < 0)) & ((Ud > 0) | (Vd > 0) | (Wd > 0)))
+                                & (detd != 0))
+                t[redo] = (Td / detd).astype(np.float32)
+                bu[redo] = (Vd / detd).astype(np.float32)
+                bv[redo] = (Wd / detd).astype(np.float32)
+    inside &= ~skip[tri]
     return np.where(inside, t, np.inf), bu, bv
 
 
