@@ -58,6 +58,8 @@ from .hard_cases import Case
 
 U = 2.0 ** -24
 T_BOUND = 16 * U
+#: Absolute error floor of float32 results that underflow (2^9 of the smallest denormal).
+UNDERFLOW = 2.0 ** -140
 
 #: Builders by the names ``--builders`` takes: the options given to :func:`lbvh.build`.
 BUILDERS: dict[str, dict[str, Any]] = {
@@ -191,13 +193,16 @@ def _edge_function(p: tuple, q: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarr
     ``p`` and ``q`` are ``(x, y, mx, my)``: sheared coordinates and the sizes of the
     numbers the kernel computed them from (``|v - o| + |shear * z|`` per axis):
     each coordinate carries at most about ``5 u`` of those; the bound allows 16 u.
+    Below float32's normal range rounding is absolute: ``UNDERFLOW`` is added to
+    the sizes (through ``mx, my``, for a shear constant that underflows, times the
+    depth) and to the products.
     """
     px, py, pmx, pmy = p
     qx, qy, qmx, qmy = q
     value = qx * py - qy * px
     size = np.abs(qx * py) + np.abs(qy * px)
     error = 16 * U * (np.abs(qx) * pmy + np.abs(py) * qmx + np.abs(qy) * pmx
-                      + np.abs(px) * qmy + size)
+                      + np.abs(px) * qmy + size) + UNDERFLOW
     return value, error, size
 
 
@@ -229,9 +234,11 @@ def _pair_geometry(case: Case, ray: np.ndarray, tri: np.ndarray, degenerate32: n
     for corner in range(3):
         r = case.vertices[case.faces[tri, corner]].astype(np.float64)[rows, axes] - o
         reach = np.maximum(reach, np.linalg.norm(r, axis=1))
+        # the sizes carry the absolute floor of underflowing differences and shears
+        floor = UNDERFLOW / (16 * U) * (1.0 + np.abs(r[:, 2]))
         corners.append((r[:, 0] - sx * r[:, 2], r[:, 1] - sy * r[:, 2],
-                        np.abs(r[:, 0]) + np.abs(sx * r[:, 2]),
-                        np.abs(r[:, 1]) + np.abs(sy * r[:, 2])))
+                        np.abs(r[:, 0]) + np.abs(sx * r[:, 2]) + floor,
+                        np.abs(r[:, 1]) + np.abs(sy * r[:, 2]) + floor))
         depth.append(r[:, 2] * sz)
     a, b, c = corners
     (u_, eu, su), (v_, ev, sv), (w_, ew, sw) = _edge_function(b, c), _edge_function(c, a), \
@@ -274,12 +281,14 @@ class Judge:
         from .oracle import degenerate_triangles
 
         v, f = self.case.vertices, self.case.faces
-        if whole and self._degenerate is None:
-            self._degenerate = (degenerate_triangles(v, f, np.float32),
-                                degenerate_triangles(v, f, np.float64))
-        if self._degenerate is not None:
-            return self._degenerate[0][tri], self._degenerate[1][tri]
-        return degenerate_triangles(v, f[tri], np.float32), degenerate_triangles(v, f[tri], np.float64)
+        with np.errstate(over="ignore", invalid="ignore"):  # edges past float32, as the kernel
+            if whole and self._degenerate is None:
+                self._degenerate = (degenerate_triangles(v, f, np.float32),
+                                    degenerate_triangles(v, f, np.float64))
+            if self._degenerate is not None:
+                return self._degenerate[0][tri], self._degenerate[1][tri]
+            return (degenerate_triangles(v, f[tri], np.float32),
+                    degenerate_triangles(v, f[tri], np.float64))
 
     def geometry(self, ray: np.ndarray, tri: np.ndarray, whole: bool = False) -> PairGeometry:
         d32, d64 = self.degenerate(tri, whole)
@@ -636,5 +645,10 @@ def cmd_check(args: argparse.Namespace) -> int:
         for o in outcomes:
             if o.skipped:
                 print(f"skipped {o.case} / {o.builder}: {o.skipped}")
+    return exit_status(outcomes)
+
+
+def exit_status(outcomes: list[Outcome]) -> int:
+    """1 if an outcome that ran failed, else 0 (skipped outcomes do not count)."""
     return 0 if all(o.passed or o.skipped for o in outcomes) else 1
 
