@@ -304,7 +304,8 @@ class Judge:
         if len(rays):
             bound[rays] = self.geometry(rays, ref.prim[rays]).bound
         with np.errstate(invalid="ignore"):  # inf - inf on rays both miss
-            same = (prim == ref.prim) & (~ref.hit | (np.abs(t - ref.t) <= bound))
+            # t == ref.t also covers a hit beyond float32 that both report as inf
+            same = (prim == ref.prim) & (~ref.hit | (t == ref.t) | (np.abs(t - ref.t) <= bound))
         return same, bound
 
     def right_answers(self, rays: np.ndarray, prim: np.ndarray, t: np.ndarray,
@@ -399,7 +400,8 @@ def compare_closest(judge: Judge, prim: np.ndarray, t: np.ndarray,
     agreement = Agreement(wrong, ambiguous)
     good = same & ref.hit & ~flagged
     if good.any():
-        err = np.abs(t - np.where(ref.hit, ref.t, 0.0))
+        with np.errstate(invalid="ignore"):
+            err = np.where(t == ref.t, 0.0, np.abs(t - np.where(ref.hit, ref.t, 0.0)))
         agreement.worst_t_over_bound = float(np.max(err[good] / bound[good]))
         # relative errors only of hits clear of the origin: a ray starting on a
         # surface has t_ref ~ 0 and a meaningless ratio (the bound covers it)
