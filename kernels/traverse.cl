@@ -99,8 +99,11 @@ inline Ray make_ray(__global const float *r) {
     ray.texp = 0;
     const float dmax = fmax(fmax(fabs(ray.dx), fabs(ray.dy)), fabs(ray.dz));
     if (dmax < 0x1p-60f || dmax > 0x1p60f) {
+        /* Only as far as back into [2^-60, 2^60]: the least change of t's
+         * scale, so t itself neither overflows nor underflows. */
         int e;
         (void)frexp(dmax, &e);
+        e = e > 0 ? e - 60 : e + 59;
         ray.texp = e;
         ray.dx = ldexp(ray.dx, -e); ray.dy = ldexp(ray.dy, -e); ray.dz = ldexp(ray.dz, -e);
         ray.tmin = ldexp(ray.tmin, e); ray.tmax = ldexp(ray.tmax, e);
@@ -232,10 +235,13 @@ inline int hit_triangle(__global const float *vertices, int i0, int i1, int i2, 
 #ifdef WATERTIGHT_FP64
     /* Section 3.3: an edge function that rounds to zero is recomputed in
      * double, where products of floats are exact and its sign is right. The
-     * same is done when the float32 products leave float32's range (triangles
-     * ~1e19 or ~1e-23 in size around the ray, or tiny ray directions): then
-     * the whole test runs in double and only t, u, v return to float. */
-    if (U == 0.0f || V == 0.0f || W == 0.0f || !(fabs(det) <= FLT_MAX) || !(fabs(T) <= FLT_MAX))
+     * same is done when a float32 product leaves float32's normal range
+     * (triangles ~1e19 or ~1e-19 in size around the ray: overflow, or
+     * denormals that lose digits): then the whole test runs in double and
+     * only t, u, v return to float. */
+    if (fabs(U) < FLT_MIN || fabs(V) < FLT_MIN || fabs(W) < FLT_MIN ||
+        !(fabs(det) >= FLT_MIN && fabs(det) <= FLT_MAX) ||
+        !(fabs(T) >= FLT_MIN && fabs(T) <= FLT_MAX))
         return hit_triangle_fp64(vertices, i0, i1, i2, ray, ax, ay, az, bx, by, bz, cx, cy, cz,
                                  best, bu, bv);
 #endif

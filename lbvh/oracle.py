@@ -136,9 +136,12 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
         bv = W / det
         if dtype == np.float32:
             # The kernel redoes the test in double when an edge function rounds
-            # to zero or a product leaves float32's range; only t, u, v go back.
+            # to zero or a product leaves float32's normal range; only t, u, v go back.
             big = np.float32(np.finfo(np.float32).max)
-            redo = ((U == 0) | (V == 0) | (W == 0) | ~(np.abs(det) <= big) | ~(np.abs(T) <= big))
+            tiny = np.float32(np.finfo(np.float32).tiny)
+            redo = ((np.abs(U) < tiny) | (np.abs(V) < tiny) | (np.abs(W) < tiny)
+                    | ~((np.abs(det) >= tiny) & (np.abs(det) <= big))
+                    | ~((np.abs(T) >= tiny) & (np.abs(T) <= big)))
             if redo.any():
                 d = [q[redo].astype(np.float64) for q in (ax, ay, bx, by, cx, cy)]
                 zd = [q[redo].astype(np.float64) for q in z]

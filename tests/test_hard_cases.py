@@ -41,11 +41,9 @@ CASES = [name for name in hard_cases.CASES if name != LARGE]
 #: Cases that fail because of a known bug, with the reason (file and function to
 #: fix): their test_hits is xfail(strict=True). The kernel's edge functions
 #: overflowing or underflowing float32 (huge, tiny and denormal coordinates, tiny
-#: directions) were fixed in 7198874; what remains:
-DENORMAL_T = ("traverse.cl hit_triangle: T = U z'a + V z'b + W z'c becomes a float32 denormal "
-              "(not 0, not inf, so the double path is not taken) and t = T / det loses up to "
-              "0.3%; see test_t_of_a_tiny_triangle_near_the_origin_is_accurate")
-KNOWN_BUGS: dict[str, str] = {"deep_sah_chain": DENORMAL_T}
+#: directions) were fixed in 7198874, a denormal or underflowed T and far hits
+#: along huge directions after it; none is known now.
+KNOWN_BUGS: dict[str, str] = {}
 
 
 def slow_enabled(config) -> bool:
@@ -228,9 +226,6 @@ def test_an_underflowing_edge_function_gives_no_false_hit(options):
     assert not bvh.intersect(o, d).hit[0]
 
 
-@pytest.mark.xfail(strict=True, reason="traverse.cl make_ray: a direction longer than 2^60 is "
-                   "scaled to [0.5, 1) (frexp), so t' = t * 2^e overflows float32 when the hit "
-                   "is ~1.7e38 or more from the origin; scaling only into [2^-60, 2^60] would not")
 @pytest.mark.parametrize("length", [3e38, 1e30])
 def test_a_far_hit_along_a_huge_direction_is_found(length):
     # Found by tests/test_fuzz.py: the hit 3e38 from the origin is found along a unit
@@ -243,7 +238,6 @@ def test_a_far_hit_along_a_huge_direction_is_found(length):
     assert hits.prim[0] == 0 and hits.t[0] == np.float32(3e38) / np.float32(length)
 
 
-@pytest.mark.xfail(strict=True, reason=DENORMAL_T)
 @pytest.mark.parametrize("size", [3e-15, 5e-15, 1e-14])
 def test_t_of_a_tiny_triangle_near_the_origin_is_accurate(size):
     # A triangle `size` across, hit `size` from the origin: T ~ size^3 is below
