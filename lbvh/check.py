@@ -264,7 +264,7 @@ def _pair_geometry(case: Case, ray: np.ndarray, tri: np.ndarray, degenerate32: n
     return PairGeometry(t, bound, robust, possible | robust)
 
 
-def _same_t(g: PairGeometry, t: np.ndarray) -> np.ndarray:
+def t_agrees(g: PairGeometry, t: np.ndarray) -> np.ndarray:
     """Whether the kernel's ``t`` is the pairs' ``t`` within the bound; a ``t`` past
     float32's range is ``inf`` for both."""
     with np.errstate(invalid="ignore"):
@@ -334,7 +334,7 @@ class Judge:
         genuine = np.zeros(len(rays), bool)
         if hit.any():
             g = self.geometry(rays[hit], prim[hit])
-            genuine[hit] = g.possible & _same_t(g, t[hit])
+            genuine[hit] = g.possible & t_agrees(g, t[hit])
         ref_hit = ref.hit[rays]
         robust_ref = np.zeros(len(rays), bool)
         late = np.zeros(len(rays), bool)  # beyond the reference hit and its bound
@@ -374,7 +374,7 @@ class Judge:
             p, tk = prim[chunk], t[chunk]
             row, col = np.arange(len(r)), np.maximum(p, 0)
             genuine = (g.possible.reshape(robust.shape)[row, col]
-                       & _same_t(PairGeometry(t_all[row, col], bound[row, col], None, None), tk))
+                       & t_agrees(PairGeometry(t_all[row, col], bound[row, col], None, None), tk))
             if closest:
                 genuine &= tk <= first_robust
             out[chunk] = np.where(p >= 0, genuine, ~robust.any(axis=1))

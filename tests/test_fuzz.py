@@ -157,7 +157,7 @@ def _same_answers(a, b, v, f, o, d):
         judge = check.Judge(case, check.Reference(a.prim, a.t.astype(np.float64), exact=False))
         for hits in (a, b):
             g = judge.geometry(other, hits.prim[other])
-            assert (g.possible & (np.abs(g.t - hits.t[other]) <= g.bound)).all()
+            assert (g.possible & check.t_agrees(g, hits.t[other])).all()
 
 
 @FUZZ
