@@ -28,8 +28,10 @@ budget, so CI is repeatable; a longer random run is one command::
 ("long": 2000 examples per property, random seeds, failures saved to
 .hypothesis/ and replayed first next time; ``LBVH_FUZZ_EXAMPLES=n`` overrides
 the count of either profile). The fuzzer found the false hit of
-``test_an_underflowing_edge_function_gives_no_false_hit`` and the lost hit of
-``test_a_far_hit_along_a_huge_direction_is_found`` (tests/test_hard_cases.py).
+``test_an_underflowing_edge_function_gives_no_false_hit``, the lost hit of
+``test_a_far_hit_along_a_huge_direction_is_found`` and the hit on a zero-area
+triangle of ``test_a_zero_area_triangle_with_overflowing_edges_is_never_hit``
+(tests/test_hard_cases.py); a long run may meet the last one again until it is fixed.
 """
 from __future__ import annotations
 
