@@ -171,10 +171,14 @@ inline float max_abs3(float x, float y, float z) {
     return x > y ? (x > z ? x : z) : (y > z ? y : z);
 }
 inline int degenerate(__global const float *vertices, int i0, int i1, int i2) {
-    float ax = vertices[i1] - vertices[i0], ay = vertices[i1 + 1] - vertices[i0 + 1];
-    float az = vertices[i1 + 2] - vertices[i0 + 2];
-    float bx = vertices[i2] - vertices[i0], by = vertices[i2 + 1] - vertices[i0 + 1];
-    float bz = vertices[i2 + 2] - vertices[i0 + 2];
+    /* Edges of halved vertices: the direction is the same and vertices up to
+     * +-FLT_MAX cannot overflow the difference (inf would make the test NaN). */
+    float ax = vertices[i1] * 0.5f - vertices[i0] * 0.5f;
+    float ay = vertices[i1 + 1] * 0.5f - vertices[i0 + 1] * 0.5f;
+    float az = vertices[i1 + 2] * 0.5f - vertices[i0 + 2] * 0.5f;
+    float bx = vertices[i2] * 0.5f - vertices[i0] * 0.5f;
+    float by = vertices[i2 + 1] * 0.5f - vertices[i0 + 1] * 0.5f;
+    float bz = vertices[i2 + 2] * 0.5f - vertices[i0 + 2] * 0.5f;
     const float sa = max_abs3(ax, ay, az), sb = max_abs3(bx, by, bz);
     if (sa == 0.0f || sb == 0.0f) return 1;
     ax = ax / sa; ay = ay / sa; az = az / sa;

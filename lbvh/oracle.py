@@ -74,7 +74,7 @@ def degenerate_triangles(vertices: np.ndarray, faces: np.ndarray, dtype=np.float
     each scaled to a largest component of 1; an edge of length zero is
     degenerate. Same operations, same order as ``degenerate()`` in the kernel.
     """
-    p = vertices[faces].astype(dtype)
+    p = vertices[faces].astype(dtype) * dtype(0.5)  # halved: the edges cannot overflow
     e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
     s1, s2 = np.abs(e1).max(axis=1), np.abs(e2).max(axis=1)
     zero = (s1 == 0) | (s2 == 0)

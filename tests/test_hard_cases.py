@@ -251,9 +251,6 @@ def test_t_of_a_tiny_triangle_near_the_origin_is_accurate(size):
     assert abs(got - exact) <= 1e-6 * exact, (got, exact)
 
 
-@pytest.mark.xfail(strict=True, reason="traverse.cl degenerate(): the edges v1 - v0 overflow "
-                   "float32 (inf) for vertices at +-3e38, the sine test gives NaN and calls the "
-                   "triangle not degenerate; halving the edges (v1*0.5f - v0*0.5f) would not")
 def test_a_zero_area_triangle_with_overflowing_edges_is_never_hit():
     # Found by a long tests/test_fuzz.py run: three collinear vertices (the last is
     # the midpoint of the first two) 6e38 apart, and a ray through the midpoint.
