@@ -79,6 +79,7 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh",
     if collapse:
         _check_collapse_options(**options)
     ctx = dev.get_context(device)
+    _check_fits(ctx, len(f))
     t0 = time.perf_counter()
     vbuf, fbuf = dev.to_device(ctx, v), dev.to_device(ctx, f)
     ctx.queue.finish()
@@ -89,6 +90,17 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh",
         from .collapse import collapse_leaves
         bvh = collapse_leaves(bvh, **options)
     return bvh
+
+
+def _check_fits(ctx: dev.Context, num_triangles: int) -> None:
+    """Refuse, before any upload, a mesh whose node buffer exceeds the device's largest buffer."""
+    node_bytes = 32 * (2 * num_triangles - 1)
+    limit = int(ctx.device.max_mem_alloc_size)
+    if node_bytes > limit:
+        raise dev.DeviceError(
+            f"lbvh: {num_triangles:,} triangles need a {node_bytes:,}-byte node buffer, more than "
+            f"{ctx.name}'s largest allocation ({limit:,} bytes); split the mesh or pick another "
+            "device")
 
 
 def _check_collapse_options(c_node: float = 1.0, c_tri: float = 1.0, max_leaf_size: int = 8,

@@ -12,6 +12,9 @@ import numpy as np
 
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 
+#: 2F - 1 nodes of 8 words each must stay addressable by a 32-bit int in the kernels.
+MAX_TRIANGLES = 2**27 - 1
+
 
 def _first_row(mask: np.ndarray) -> int:
     return int(np.flatnonzero(mask.reshape(len(mask), -1).any(axis=1))[0])
@@ -82,8 +85,9 @@ def as_faces(faces: Any, num_vertices: int) -> np.ndarray:
         i = _first_row(outside)
         raise ValueError(f"faces: face {i} {arr[i].tolist()} indexes a vertex outside "
                          f"[0, {num_vertices})")
-    if len(arr) >= 2**31 - 1:
-        raise ValueError(f"faces: {len(arr)} triangles; at most 2**31 - 2 are supported")
+    if len(arr) > MAX_TRIANGLES:
+        raise ValueError(f"faces: {len(arr):,} triangles; at most {MAX_TRIANGLES:,} are supported "
+                         "(the kernels address 32-byte node records with 32-bit offsets)")
     return np.ascontiguousarray(wide, dtype=np.uint32)
 
 

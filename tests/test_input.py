@@ -70,3 +70,11 @@ def test_bad_refit_leaves_tree_usable():
 def test_unknown_device_names_the_choices():
     with pytest.raises(lbvh.DeviceError, match="no OpenCL device matches"):
         lbvh.build(GOOD_V, GOOD_F, device="no-such-device-xyz")
+
+
+def test_a_mesh_too_large_for_the_device_is_refused_before_upload(ctx):
+    from lbvh.build import _check_fits
+    too_many = int(ctx.device.max_mem_alloc_size) // 64 + 1  # 32 B x (2F - 1) nodes
+    with pytest.raises(lbvh.DeviceError, match="node buffer, more than .* largest allocation"):
+        _check_fits(ctx, too_many)
+    _check_fits(ctx, 1000)  # small meshes pass
