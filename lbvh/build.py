@@ -164,6 +164,6 @@ def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl
                          key_choice=choice, duplicate_codes=duplicates,
                          phase_seconds=phase_seconds, device_seconds=sum(phase_seconds.values()),
                          wall_seconds=wall, sort_passes=passes,
-                         peak_device_bytes=mem.peak - 0, input_bytes=vertices.nbytes + faces.nbytes)
+                         peak_device_bytes=mem.peak, input_bytes=vertices.nbytes + faces.nbytes)
     return BVH(ctx, vertices, faces, vbuf, fbuf, nodes, parent, prim_order, 2 * n - 1, 0,
                "lbvh", report)

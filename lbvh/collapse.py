@@ -32,6 +32,7 @@ from . import device as dev
 from .bvh import BVH
 from .layout import NODE_DTYPE, children_of, is_leaf, node_depths
 from .quality import check_sah_constants
+from .refit import clear_arrivals
 from .report import BuildReport
 
 KERNEL_FILE = "collapse.cl"
@@ -49,7 +50,7 @@ def _decide(bvh: BVH, c_node: float, c_tri: float, max_leaf_size: int
     arrivals = dev.empty(ctx, 4 * n)
     stats = dev.empty(ctx, _STATS_DTYPE.itemsize * n)
     becomes_leaf = dev.empty(ctx, 4 * n)
-    fill = cl.enqueue_fill_buffer(ctx.queue, arrivals, np.int32(0), 0, 4 * n)
+    fill = clear_arrivals(ctx, arrivals, n)
     launch = ctx.launch(num_leaves, min_per_item=256)
     ev = ctx.kernel(KERNEL_FILE, "collapse_costs")(
         ctx.queue, (launch.global_size,), launch.local, bvh.nodes_buf, bvh.parent_buf, arrivals,

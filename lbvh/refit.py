@@ -9,11 +9,19 @@ from __future__ import annotations
 import numpy as np
 import pyopencl as cl
 
-from .bounds import triangle_bounds
+from .bounds import triangle_bounds, triangle_boxes_numpy
 from .device import Context, MemoryTracker
 from .layout import children_of, is_leaf, node_depths, prim_range_of
 
 KERNEL_FILE = "refit.cl"
+
+
+def clear_arrivals(ctx: Context, arrivals: cl.Buffer, count: int) -> cl.Event:
+    """Zero ``count`` int32 arrival counters of a bottom-up walk (a kernel: PoCL's fill is slow)."""
+    clear = ctx.launch(count, min_per_item=4096)
+    return ctx.kernel(KERNEL_FILE, "clear_arrivals")(
+        ctx.queue, (clear.global_size,), clear.local, arrivals, np.int32(count),
+        np.int32(clear.per_item))
 
 
 def refit_from_boxes(ctx: Context, boxes: cl.Buffer, prim_order: cl.Buffer, nodes: cl.Buffer,
@@ -27,10 +35,7 @@ def refit_from_boxes(ctx: Context, boxes: cl.Buffer, prim_order: cl.Buffer, node
     """
     if num_leaves is None:
         num_leaves = num_prims if leaf_nodes is None else leaf_nodes.size // 4
-    clear = ctx.launch(num_nodes, min_per_item=4096)
-    ev0 = ctx.kernel(KERNEL_FILE, "clear_arrivals")(
-        ctx.queue, (clear.global_size,), clear.local, arrivals, np.int32(num_nodes),
-        np.int32(clear.per_item))
+    ev0 = clear_arrivals(ctx, arrivals, num_nodes)
     launch = ctx.launch(num_leaves, min_per_item=256)
     use_list = leaf_nodes is not None
     leaf_arg = leaf_nodes if use_list else arrivals  # not read by the kernel in that case
@@ -63,9 +68,8 @@ def refit_numpy(nodes: np.ndarray, parent: np.ndarray, root: int, prim_order: np
     Returns ``lower, upper`` ``float32 (num_nodes, 3)``. min/max are exact, so
     the device refit must match this bit for bit.
     """
-    tri = vertices[faces]
-    tlo = np.minimum(np.minimum(tri[:, 0], tri[:, 1]), tri[:, 2])[prim_order]
-    thi = np.maximum(np.maximum(tri[:, 0], tri[:, 1]), tri[:, 2])[prim_order]
+    tlo, thi = triangle_boxes_numpy(vertices, faces)
+    tlo, thi = tlo[prim_order], thi[prim_order]
     num_nodes = len(nodes)
     lower = np.zeros((num_nodes, 3), np.float32)
     upper = np.zeros((num_nodes, 3), np.float32)

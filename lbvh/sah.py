@@ -45,7 +45,7 @@ from .bvh import BVH
 from .layout import NODE_DTYPE
 from .quality import box_area, check_sah_constants
 from .report import BuildReport
-from .validate import triangle_boxes
+from .bounds import triangle_boxes_numpy
 
 #: Default cost of one internal node visit (box test), relative to C_TRI.
 C_NODE = 1.0
@@ -275,7 +275,7 @@ def build_sah(vertices: np.ndarray, faces: np.ndarray, *, device: Any = None, c_
     check_sah_constants(c_node, c_tri, max_leaf_size)
     ctx = dev.get_context(device)
     t0 = time.perf_counter()
-    lo, hi = triangle_boxes(vertices, faces)
+    lo, hi = triangle_boxes_numpy(vertices, faces)
     nodes, prim_order = sah_tree(lo, hi, float(c_node), float(c_tri), int(max_leaf_size))
     wall = time.perf_counter() - t0
     report = BuildReport(device=ctx.name, builder="sah", num_triangles=len(faces), wall_seconds=wall,

@@ -7,19 +7,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from .bounds import triangle_boxes_numpy
 from .layout import children_of, is_leaf, prim_range_of
 
 
 class BVHValidationError(ValueError):
     """A BVH broke one of the invariants of docs/layout.md."""
-
-
-def triangle_boxes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``float32 (F, 3)`` min and max corners of each triangle (exact min/max)."""
-    tri = vertices[faces]  # (F, 3 vertices, 3 axes)
-    lo = np.minimum(np.minimum(tri[:, 0], tri[:, 1]), tri[:, 2])
-    hi = np.maximum(np.maximum(tri[:, 0], tri[:, 1]), tri[:, 2])
-    return lo, hi
 
 
 def _fail(msg: str) -> None:
@@ -122,7 +115,7 @@ def validate_tree(nodes: np.ndarray, parent: np.ndarray, prim_order: np.ndarray,
         if outside.any():
             i = _first(outside)
             _fail(f"node {internal[i]} box does not contain its {name} child {c[i]}")
-    tlo, thi = triangle_boxes(vertices, faces)
+    tlo, thi = triangle_boxes_numpy(vertices, faces)
     slot_lo, slot_hi = tlo[prim_order], thi[prim_order]
     first = ranges[:, 0]
     leaf_lo = np.minimum.reduceat(slot_lo, first[order], axis=0)

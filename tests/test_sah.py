@@ -8,7 +8,7 @@ import lbvh
 from conftest import random_soup, shipped_mesh
 from lbvh.quality import sah_cost
 from lbvh.sah import best_split, sah_tree
-from lbvh.validate import triangle_boxes
+from lbvh.bounds import triangle_boxes_numpy as triangle_boxes
 
 
 def _brute_force_split(lo: np.ndarray, hi: np.ndarray):
