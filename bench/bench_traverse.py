@@ -1,0 +1,850 @@
+#!/usr/bin/env python
+"""Ray traversal against Embree and warp on the same rays, in the same run (issue 3).
+
+    .venv/bin/python bench/bench_traverse.py [--quick] [--scenes sponza,bunny,terrain-1m]
+        [--rays 1024x1024] [--repeats 3] [--ao-samples 1] [--sah] [--no-peers] [--out DIR]
+
+For every scene, three ray sets, traced by every tracer:
+
+* ``closest``: primary rays, one per pixel of the scene's camera in
+  ``bench/cameras.json`` (Sponza uses ``sponza-atrium``: inside the open
+  atrium, every pixel hits), closest hit;
+* ``any``: the same rays, any hit (occlusion), ``tmax = inf``;
+* ``ao``: ambient occlusion rays, ``--ao-samples`` cosine-weighted rays per
+  pixel whose primary ray hits, made once (outside any timing) from the lbvh
+  tree's primary hits by :func:`lbvh.render.ambient_occlusion` itself (the
+  offsets, reach and sample pattern of ``lbvh render --mode ao``), any hit
+  with ``tmax`` = the AO reach (``AO_DISTANCE`` times the scene diagonal).
+
+Tracers (each ray set goes in ``--repeats`` rounds, every tracer once per
+round, so that the machine's noise hits all alike):
+
+* ours, through the public API ``bvh.intersect`` / ``bvh.occluded`` (ray
+  validation, packing, transfers and read-back included: what users get), on
+  the default ``lbvh.build`` tree (``lbvh``: key bits auto), the same with
+  ``collapse=True`` (``lbvh+collapse``) and, with ``--sah``, the serial SAH
+  tree on scenes up to :data:`SAH_MAX_TRIANGLES` triangles;
+* ours ``(kernel only)``: the traversal kernel's device time from OpenCL event
+  profiling (:func:`lbvh.traverse.trace_buffers` on rays already on the
+  device), same trees: the API rows minus the host work;
+* ``embree-1t``: embreex (Embree 4) ``scene.run`` on one thread (closest hit
+  ``output=1``, any hit ``query='OCCLUDED'`` with ``dists = tmax``);
+  ``embree-2t``: the same scene, the rays in :data:`EMBREE_CHUNKS` chunks
+  pulled by two Python threads (embreex releases the GIL while it traces);
+* ``warp``: warp-lang on the CPU device (``wp.Mesh``, SAH constructor; a CPU
+  launch runs on one thread): closest hit ``wp.mesh_query_ray``, any hit
+  ``wp.mesh_query_ray_anyhit`` (closest hit with ``max_t`` where a warp
+  version lacks it, said in the report).
+
+Error figures beside every speed: the spread of the timing samples
+((max - min) / median) and the agreement with the reference tracer
+(``embree-1t``; ``lbvh`` when Embree is not installed): for closest hits
+:func:`bench_builders.agreement` (hit or miss, primitive, ``t`` within
+:func:`bench_builders.t_bound`; ``with ties`` accepts another primitive at the
+same ``t``), for any hits the fraction with the same hit or miss. Rays on which
+a tracer and the reference disagree are judged (up to ``--judge`` of them per
+ray set) against the float64 oracle (:func:`lbvh.oracle.brute_force`) with
+:class:`lbvh.check.Judge`, which accepts any answer that float32 rounding can
+give (edges, ties, grazing hits): each row says how many of its disagreements
+were right and how many wrong. Our rows also count stack overflows.
+
+Outputs in ``--out``: ``bench_traverse.json`` (every sample, the machine) and
+``bench_traverse.md`` (also printed): the table, the closest-hit ratios and
+the targets of issue 3, each MET or NOT MET. Progress goes to stderr.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import datetime
+import importlib
+import json
+import statistics
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+import bench_builders as bb  # noqa: E402  (bench/ is not a package)
+
+import lbvh  # noqa: E402
+from lbvh import device as dev  # noqa: E402
+from lbvh.check import Judge, Reference  # noqa: E402
+from lbvh.hard_cases import Case  # noqa: E402
+from lbvh.oracle import brute_force  # noqa: E402
+from lbvh.render import AO_DISTANCE, ambient_occlusion, scene_diagonal  # noqa: E402
+from lbvh import traverse  # noqa: E402
+
+FULL_SCENES = ("sponza", "bunny", "terrain-1m")
+QUICK_SCENES = ("teapot",)
+FULL_RAYS = (1024, 1024)
+QUICK_RAYS = (96, 96)
+#: Scenes whose camera is another entry of bench/cameras.json.
+CAMERA_OF = {"sponza": "sponza-atrium"}
+QUERIES = ("closest", "any", "ao")
+#: ``--sah`` builds the serial SAH tree only up to this size (9 s on Sponza's 262K).
+SAH_MAX_TRIANGLES = 300_000
+#: embree-2t hands out the rays in this many chunks, so that neither thread idles
+#: while the other finishes an expensive part of the image.
+EMBREE_CHUNKS = 16
+REFERENCE = "embree-1t"
+FALLBACK_REFERENCE = "lbvh"
+#: The tree ``lbvh.build`` gives by default: the one the targets are about.
+OURS = "lbvh"
+#: Issue 3's targets: closest hit, our throughput over the peer's, at least this much.
+TARGETS = (("embree-2t", 0.3), ("warp", 1.5))
+WARP_CONSTRUCTOR = "sah"
+
+
+# -- rays ----------------------------------------------------------------------------
+
+@dataclass
+class RaySet:
+    """One query's rays: ``float32 (N, 3)`` origins and directions, a scalar ``tmax``."""
+    query: str
+    origins: np.ndarray
+    directions: np.ndarray
+    tmax: float
+
+    @property
+    def closest(self) -> bool:
+        return self.query == "closest"
+
+    def __len__(self) -> int:
+        return len(self.origins)
+
+    def first(self) -> "RaySet":
+        """The first ray alone (compiles kernels outside the timing)."""
+        return RaySet(self.query, self.origins[:1], self.directions[:1], self.tmax)
+
+
+def ao_rays(bvh: lbvh.BVH, hits: lbvh.traverse.Hits, directions: np.ndarray, samples: int,
+            seed: int = 0) -> RaySet:
+    """The rays :func:`lbvh.render.ambient_occlusion` casts for these primary hits,
+    recorded instead of traced (its generator, not a copy of it)."""
+    batches: list[tuple[np.ndarray, np.ndarray]] = []
+    reach = [AO_DISTANCE * scene_diagonal(bvh.vertices)]
+
+    def record(origins: np.ndarray, dirs: np.ndarray, tmax: float) -> np.ndarray:
+        batches.append((origins, dirs))
+        reach[0] = float(tmax)
+        return np.zeros(len(origins), bool)
+
+    ambient_occlusion(record, bvh.vertices, bvh.faces, hits.prim, hits.u, hits.v, directions,
+                      samples, seed=seed)
+    if not batches:
+        empty = np.zeros((0, 3), np.float32)
+        return RaySet("ao", empty, empty, reach[0])
+    return RaySet("ao", np.concatenate([b[0] for b in batches]),
+                  np.concatenate([b[1] for b in batches]), reach[0])
+
+
+# -- tracers -------------------------------------------------------------------------
+
+@dataclass
+class Answer:
+    """What a tracer returned: ``hit bool (N,)``; ``prim int32`` and ``t float32 (N,)``
+    of the closest hit (of the hit found, for our any hits) where the tracer gives them;
+    ``overflow``: our rays whose stack overflowed."""
+    hit: np.ndarray
+    prim: np.ndarray | None = None
+    t: np.ndarray | None = None
+    overflow: int | None = None
+
+
+class OurTree:
+    """One of our trees through the public API (host work included)."""
+
+    def __init__(self, bvh: lbvh.BVH) -> None:
+        self.bvh = bvh
+
+    def trace(self, rays: RaySet) -> tuple[Answer, None]:
+        if rays.closest:
+            h = self.bvh.intersect(rays.origins, rays.directions)
+        else:
+            h = self.bvh.occluded(rays.origins, rays.directions, tmax=rays.tmax, return_hits=True)
+        return Answer(h.hit, h.prim, h.t, int(h.overflow_count)), None
+
+    def close(self) -> None:
+        pass
+
+
+#: The device-level entry points the kernel-only rows use.
+KERNEL_API = ("check_rays", "upload_rays", "trace_buffers")
+
+
+def kernel_only_missing() -> str | None:
+    """Why kernel-only rows cannot be measured with this lbvh, or None."""
+    missing = [name for name in KERNEL_API if not hasattr(traverse, name)]
+    return f"lbvh.traverse has no {', '.join(missing)}" if missing else None
+
+
+class OurKernel:
+    """The traversal kernel alone (:func:`lbvh.traverse.trace_buffers`) on rays uploaded
+    once per ray set, into output buffers allocated once: device seconds from its event."""
+
+    def __init__(self, bvh: lbvh.BVH) -> None:
+        self.bvh = bvh
+        # id(ray set) -> (the ray set, kept alive so that its id is not reused; its buffers)
+        self._buffers: dict[int, tuple[RaySet, Any, Any, Any]] = {}
+
+    def _on_device(self, rays: RaySet) -> tuple[RaySet, Any, Any, Any]:
+        key = id(rays)
+        if key not in self._buffers:
+            ctx = self.bvh.ctx
+            checked = traverse.check_rays(rays.origins, rays.directions, 0.0, rays.tmax)
+            self._buffers[key] = (rays, traverse.upload_rays(ctx, checked),
+                                  dev.empty(ctx, 16 * len(rays)), dev.empty(ctx, 4 * len(rays)))
+        return self._buffers[key]
+
+    def trace(self, rays: RaySet) -> tuple[None, float]:
+        _, device_rays, hit_buf, flag_buf = self._on_device(rays)
+        out = traverse.trace_buffers(self.bvh, device_rays, any_hit=not rays.closest,
+                                     hits=hit_buf, flags=flag_buf)
+        return None, dev.event_seconds([out.event])
+
+    def close(self) -> None:
+        for _, device_rays, hit_buf, flag_buf in self._buffers.values():
+            device_rays.release()
+            hit_buf.release()
+            flag_buf.release()
+        self._buffers.clear()
+
+
+def chunks(count: int, parts: int) -> list[slice]:
+    """``parts`` contiguous slices covering ``range(count)`` (empty ones dropped)."""
+    edges = np.linspace(0, count, parts + 1).astype(int)
+    return [slice(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+class EmbreeTracer:
+    """embreex on ``threads`` Python threads (1: the calling thread), one shared scene."""
+
+    def __init__(self, embree: bb.Embree, built: Any, threads: int,
+                 pool: ThreadPoolExecutor | None) -> None:
+        self.embree, self.built, self.threads, self.pool = embree, built, threads, pool
+
+    def _part(self, rays: RaySet, part: slice) -> tuple[np.ndarray, np.ndarray | None]:
+        o, d = rays.origins[part], rays.directions[part]
+        if rays.closest:
+            t, prim = self.embree.trace(self.built, o, d)
+            return prim, t
+        # dists is Embree's tfar per ray; a fresh array (embreex writes into it)
+        hit_geometry = self.built[0].run(o, d, dists=np.full(len(o), rays.tmax, np.float32),
+                                         query="OCCLUDED")
+        return hit_geometry >= 0, None
+
+    def trace(self, rays: RaySet) -> tuple[Answer, None]:
+        if self.threads == 1:
+            parts = [self._part(rays, slice(None))]
+        else:
+            parts = list(self.pool.map(lambda s: self._part(rays, s),
+                                       chunks(len(rays), EMBREE_CHUNKS)))
+        if rays.closest:
+            prim = np.concatenate([p[0] for p in parts])
+            return Answer(prim >= 0, prim, np.concatenate([p[1] for p in parts])), None
+        return Answer(np.concatenate([p[0] for p in parts])), None
+
+    def close(self) -> None:
+        pass
+
+
+def warp_has_builtin(wp: Any, name: str) -> bool:
+    """Whether this warp's kernels can call builtin ``name`` (builtins are not module
+    attributes; their table moved to ``warp._src`` in warp 1.10)."""
+    for module in ("warp._src.context", "warp.context"):
+        try:
+            return name in importlib.import_module(module).builtin_functions
+        except (ImportError, AttributeError):
+            continue
+    return hasattr(wp, name)
+
+
+class WarpTracer:
+    """warp-lang's CPU mesh queries: closest hit through :class:`bench_builders.Warp`,
+    any hit through ``wp.mesh_query_ray_anyhit`` (closest hit with ``max_t`` before it existed)."""
+
+    def __init__(self, warp: bb.Warp, mesh: Any) -> None:
+        self.warp, self.mesh = warp, mesh
+        self.has_any_hit = warp_has_builtin(warp.wp, "mesh_query_ray_anyhit")
+        self._kernel = None
+
+    @property
+    def any_hit_note(self) -> str:
+        return ("wp.mesh_query_ray_anyhit" if self.has_any_hit else
+                "this warp has no any-hit query: closest hit wp.mesh_query_ray with max_t")
+
+    def any_hit_kernel(self):
+        """The any-hit kernel, compiled on first use (warp caches it on disk)."""
+        if self._kernel is None:
+            wp = self.warp.wp
+            if self.has_any_hit:
+                @wp.func
+                def blocked(mesh: wp.uint64, o: wp.vec3, d: wp.vec3, max_t: float) -> bool:
+                    return wp.mesh_query_ray_anyhit(mesh, o, d, max_t)
+            else:
+                @wp.func
+                def blocked(mesh: wp.uint64, o: wp.vec3, d: wp.vec3, max_t: float) -> bool:
+                    return wp.mesh_query_ray(mesh, o, d, max_t).result
+
+            @wp.kernel
+            def any_hit(mesh: wp.uint64, origins: wp.array(dtype=wp.vec3),
+                        directions: wp.array(dtype=wp.vec3), max_t: float,
+                        hit_out: wp.array(dtype=wp.int32)):
+                i = wp.tid()
+                hit_out[i] = 0
+                if blocked(mesh, origins[i], directions[i], max_t):
+                    hit_out[i] = 1
+
+            self._kernel = any_hit
+        return self._kernel
+
+    def trace(self, rays: RaySet) -> tuple[Answer, None]:
+        if rays.closest:
+            t, prim = self.warp.trace(self.mesh, rays.origins, rays.directions)
+            return Answer(prim >= 0, prim, t), None
+        wp = self.warp.wp
+        hit = wp.empty(len(rays), dtype=wp.int32, device="cpu")
+        with contextlib.redirect_stdout(sys.stderr):   # warp reports module loads on stdout
+            wp.launch(self.any_hit_kernel(), dim=len(rays), device="cpu",
+                      inputs=[self.mesh.id, wp.array(rays.origins, dtype=wp.vec3, device="cpu"),
+                              wp.array(rays.directions, dtype=wp.vec3, device="cpu"),
+                              float(rays.tmax), hit])
+            wp.synchronize()
+        return Answer(hit.numpy() != 0), None
+
+    def close(self) -> None:
+        self.mesh = None
+
+
+@dataclass
+class Contestant:
+    """One tracer on one scene: its samples per query and its latest answers."""
+    variant: bb.Variant              # .name is what the report and the progress show
+    tracer: Any
+    threads: int | None
+    timing: str                      # "wall" (the call) or "device" (kernel events)
+    build_seconds: float
+    seconds: dict[str, list[float]] = field(default_factory=dict)
+    wall: dict[str, list[float]] = field(default_factory=dict)
+    cpu: dict[str, list[float]] = field(default_factory=dict)
+    answer: dict[str, Answer | None] = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return self.variant.name
+
+    def run(self, rays: RaySet) -> None:
+        c0, t0 = time.process_time(), time.perf_counter()
+        answer, device_seconds = self.tracer.trace(rays)
+        wall = time.perf_counter() - t0
+        q = rays.query
+        self.cpu.setdefault(q, []).append(time.process_time() - c0)
+        self.wall.setdefault(q, []).append(wall)
+        self.seconds.setdefault(q, []).append(wall if device_seconds is None else device_seconds)
+        self.answer[q] = answer
+
+
+# -- building the contestants of a scene ---------------------------------------------
+
+def our_trees(scene: bb.Scene, ctx: dev.Context, with_sah: bool) -> tuple[list[tuple[str, dict]], list[str]]:
+    """``(name, lbvh.build options)`` of our trees for this scene, and notes on trees left out."""
+    trees = [(OURS, {}), (f"{OURS}+collapse", {"collapse": True})]
+    notes = []
+    if with_sah:
+        if len(scene.faces) <= SAH_MAX_TRIANGLES:
+            trees.append(("sah", {"builder": "sah"}))
+        else:
+            notes.append(f"sah: not built on {len(scene.faces):,} triangles (--sah builds it up to "
+                         f"{SAH_MAX_TRIANGLES:,}: the serial build is too slow)")
+    return trees, notes
+
+
+def timed(build: Any) -> tuple[float, Any]:
+    t0 = time.perf_counter()
+    out = build()
+    return time.perf_counter() - t0, out
+
+
+def make_contestants(scene: bb.Scene, ctx: dev.Context, peers: dict[str, Any],
+                     pool: ThreadPoolExecutor, with_sah: bool) -> tuple[list[Contestant], list[str]]:
+    """Build every tree (each once, timed for the record) and wrap it as contestants."""
+    v, f = scene.vertices, scene.faces
+    out: list[Contestant] = []
+    trees, notes = our_trees(scene, ctx, with_sah)
+    kernels = []
+    no_kernel = kernel_only_missing()
+    if no_kernel:
+        notes.append(f"no kernel-only rows: {no_kernel}")
+    for name, options in trees:
+        seconds, bvh = timed(lambda: lbvh.build(v, f, device=ctx, **options))
+        bvh.validate()
+        family = "sah" if name == "sah" else "lbvh"
+        out.append(Contestant(bb.Variant(name, family, options), OurTree(bvh), None, "wall", seconds))
+        if not no_kernel:
+            kernels.append(Contestant(bb.Variant(f"{name} (kernel only)", "kernel", options),
+                                      OurKernel(bvh), None, "device", seconds))
+    out += kernels
+    if "embree" in peers:
+        embree = peers["embree"]
+        setup, build, built = embree.build(bb.Variant("embree", "embree"), v, f)
+        for threads in (1, 2):
+            out.append(Contestant(bb.Variant(f"embree-{threads}t", "embree"),
+                                  EmbreeTracer(embree, built, threads, pool), threads, "wall",
+                                  setup + build))
+    if "warp" in peers:
+        warp = peers["warp"]
+        variant = bb.Variant("warp", "warp", {"bvh_constructor": WARP_CONSTRUCTOR})
+        setup, build, mesh = warp.build(variant, v, f)
+        tracer = WarpTracer(warp, mesh)
+        out.append(Contestant(variant, tracer, 1, "wall", setup + build))
+        notes.append(f"warp any hit: {tracer.any_hit_note}")
+    return out, notes
+
+
+# -- comparing answers ------------------------------------------------------------------
+
+def reference_of(contestants: list[Contestant]) -> Contestant:
+    by_name = {c.name: c for c in contestants}
+    return by_name.get(REFERENCE) or by_name[FALLBACK_REFERENCE]
+
+
+def differs(a: Answer, ref: Answer, bound: np.ndarray | None) -> np.ndarray:
+    """``bool (N,)``: rays not agreeing with the reference even counting ties (closest
+    hits: hit or miss, or ``t`` beyond ``bound``; any hits: hit or miss)."""
+    out = a.hit != ref.hit
+    if bound is not None:
+        both = a.hit & ref.hit
+        with np.errstate(invalid="ignore"):
+            out |= both & ~(np.abs(a.t.astype(np.float64) - ref.t) <= bound)
+    return out
+
+
+def agreement_figures(a: Answer, ref: Answer, bound: np.ndarray | None) -> dict:
+    if bound is not None:
+        return bb.agreement(a.t, a.prim, ref.t, ref.prim, bound)
+    same = a.hit == ref.hit
+    n = max(len(same), 1)
+    return {"fraction": float(same.sum() / n), "fraction_with_ties": float(same.sum() / n),
+            "hit_miss_differ": int((~same).sum())}
+
+
+def judge(scene: bb.Scene, rays: RaySet, ray_ids: np.ndarray, answers: dict[str, Answer]
+          ) -> tuple[dict[str, np.ndarray], float]:
+    """Which answers on rays ``ray_ids`` are right by the float64 oracle, within float32
+    rounding (:class:`lbvh.check.Judge`); tracers that give only hit or miss are compared
+    with the oracle's hit or miss. Returns ``{name: bool (len(ray_ids),)}`` and seconds."""
+    t0 = time.perf_counter()
+    o, d = rays.origins[ray_ids], rays.directions[ray_ids]
+    k = len(ray_ids)
+    oracle = brute_force(scene.vertices, scene.faces, o, d, 0.0, rays.tmax)
+    case = Case(f"{scene.name}-{rays.query}", scene.vertices, scene.faces,
+                "rays on which a tracer and the reference disagree", o, d,
+                np.zeros(k, np.float32), np.full(k, rays.tmax, np.float32))
+    j = Judge(case, Reference(oracle.prim, oracle.t.astype(np.float64), exact=False))
+    right = {}
+    with np.errstate(all="ignore"):
+        for name, a in answers.items():
+            if a.prim is None:
+                right[name] = a.hit[ray_ids] == oracle.hit
+            else:
+                right[name] = j.right_answers(np.arange(k), a.prim[ray_ids],
+                                              a.t[ray_ids].astype(np.float64), rays.closest)
+    return right, time.perf_counter() - t0
+
+
+def compare(scene: bb.Scene, rays: RaySet, contestants: list[Contestant], judge_max: int) -> dict:
+    """Agreement with the reference and oracle verdicts on disagreements, per tracer name."""
+    ref = reference_of(contestants).answer[rays.query]
+    bound = (bb.t_bound(scene.vertices, scene.faces, rays.origins, rays.directions, ref.t, ref.prim)
+             if rays.closest else None)
+    answers = {c.name: c.answer[rays.query] for c in contestants if c.answer.get(rays.query) is not None}
+    own = {name: differs(a, ref, bound) for name, a in answers.items()}
+    union = np.flatnonzero(np.logical_or.reduce(list(own.values())))
+    picked = union
+    if len(union) > judge_max:
+        picked = union[np.linspace(0, len(union) - 1, judge_max).astype(int)]
+    right, seconds = judge(scene, rays, picked, answers) if len(picked) else ({}, 0.0)
+    out = {"reference": reference_of(contestants).name, "disagreeing_rays": int(len(union)),
+           "judged_rays": int(len(picked)), "judge_seconds": seconds, "tracers": {}}
+    for name, a in answers.items():
+        mine = own[name][picked]
+        ok = right.get(name, np.zeros(0, bool))
+        out["tracers"][name] = {
+            **agreement_figures(a, ref, bound),
+            "disagree": int(own[name].sum()), "judged": int(mine.sum()),
+            "right": int((mine & ok).sum()), "wrong": int((mine & ~ok).sum()),
+            "wrong_on_judged_rays": int((~ok).sum()),
+            "judged_by": "lbvh.check.Judge" if a.prim is not None else "hit or miss vs the oracle",
+        }
+    return out
+
+
+# -- rows -----------------------------------------------------------------------------
+
+ROW_FIELDS = ("scene", "query", "tracer", "family", "threads", "timing", "rays", "seconds",
+              "samples", "wall_samples", "cpu_over_wall", "rays_per_second", "spread",
+              "hit_fraction", "overflow_count", "agreement", "vs", "null_reasons")
+
+
+def spread(samples: list[float]) -> float:
+    """(max - min) / median: how far the repeats scatter."""
+    return float((max(samples) - min(samples)) / statistics.median(samples))
+
+
+def ratio_to(c: Contestant, peer: Contestant | None, query: str) -> dict | None:
+    """This tracer's throughput over the peer's: the ratio of medians, and the range of
+    the per-round ratios (both ran in the same round: the same noise)."""
+    if peer is None or peer is c:
+        return None
+    mine, theirs = c.seconds[query], peer.seconds[query]
+    rounds = [b / a for a, b in zip(mine, theirs)]
+    return {"ratio": statistics.median(theirs) / statistics.median(mine),
+            "round_min": min(rounds), "round_max": max(rounds), "rounds": rounds}
+
+
+def make_rows(scene: bb.Scene, rays: RaySet, contestants: list[Contestant], figures: dict) -> list[dict]:
+    by_name = {c.name: c for c in contestants}
+    rows = []
+    for c in contestants:
+        q = rays.query
+        seconds = statistics.median(c.seconds[q])
+        a = c.answer[q]
+        row = dict.fromkeys(ROW_FIELDS)
+        row.update(scene=scene.name, query=q, tracer=c.name, family=c.variant.family,
+                   threads=c.threads, timing=c.timing, rays=len(rays), seconds=seconds,
+                   samples=c.seconds[q], wall_samples=c.wall[q],
+                   cpu_over_wall=bb.cores_used(c.cpu[q], c.wall[q]),
+                   rays_per_second=len(rays) / seconds, spread=spread(c.seconds[q]),
+                   vs={peer: ratio_to(c, by_name.get(peer), q) for peer in ("embree-1t", "embree-2t", "warp")},
+                   null_reasons={})
+        if a is None:
+            row["null_reasons"].update(
+                hit_fraction="kernel only: nothing read back (the API row has the hits)",
+                agreement="kernel only: same tree and kernel as the API row",
+                overflow_count="kernel only: see the API row")
+        else:
+            row.update(hit_fraction=float(a.hit.mean()) if len(a.hit) else 0.0,
+                       agreement=figures["tracers"][c.name])
+            if a.overflow is None:
+                row["null_reasons"]["overflow_count"] = "peer: no stack to overflow is reported"
+            else:
+                row["overflow_count"] = a.overflow
+        for peer, r in row["vs"].items():
+            if r is None:
+                row["null_reasons"][f"vs {peer}"] = ("itself" if peer == c.name
+                                                     else f"{peer} not in this run")
+        rows.append(row)
+    return rows
+
+
+# -- one scene ---------------------------------------------------------------------------
+
+def steps_per_scene(repeats: int) -> int:
+    return 1 + len(QUERIES) * repeats + 1
+
+
+def bench_scene(scene: bb.Scene, ctx: dev.Context, peers: dict[str, Any], pool: ThreadPoolExecutor,
+                args: argparse.Namespace, progress: bb.Progress) -> tuple[dict, list[dict]]:
+    """Build, make the rays, trace them in interleaved rounds, compare; the scene's
+    summary and rows."""
+    progress.note("building")
+    contestants, notes = make_contestants(scene, ctx, peers, pool, args.sah)
+    ours = contestants[0].tracer.bvh
+    origins, directions = scene.camera.rays()
+    primary = ours.intersect(origins, directions)
+    ray_sets = [RaySet("closest", origins, directions, float("inf")),
+                RaySet("any", origins, directions, float("inf")),
+                ao_rays(ours, primary, directions, args.ao_samples)]
+    for rays in ray_sets:
+        for c in contestants:
+            progress.note(f"{c.name} warm-up {rays.query}")
+            c.tracer.trace(rays.first())
+    progress.advance()
+    for rays in ray_sets:
+        bb.interleaved_rounds(contestants, args.repeats, args.budget,
+                              lambda c, q=rays.query: sum(c.wall.get(q, [])),
+                              lambda c, r=rays: c.run(r), progress, rays.query)
+    rows, comparisons = [], {}
+    for rays in ray_sets:
+        progress.note(f"judging {rays.query}")
+        figures = compare(scene, rays, contestants, args.judge)
+        rows += make_rows(scene, rays, contestants, figures)
+        comparisons[rays.query] = {k: v for k, v in figures.items() if k != "tracers"}
+    progress.advance()
+    if args.views is not None:
+        bb.save_view(args.views / f"{scene.name}.png", scene, directions, primary.t, primary.prim)
+    for c in contestants:
+        c.tracer.close()
+    summary = {"name": scene.name, "source": scene.source, "triangles": len(scene.faces),
+               "vertices": len(scene.vertices), "camera": scene.camera.as_dict(),
+               "camera_entry": CAMERA_OF.get(scene.name, scene.name),
+               "rays": {r.query: len(r) for r in ray_sets},
+               "tmax": {r.query: (None if np.isinf(r.tmax) else r.tmax) for r in ray_sets},
+               "primary_hit_fraction": float(primary.hit.mean()),
+               "build_seconds": {c.name: c.build_seconds for c in contestants if c.timing == "wall"},
+               "comparisons": comparisons, "notes": notes}
+    return summary, rows
+
+
+# -- summary, targets, Markdown -------------------------------------------------------
+
+def closest_ratios(rows: list[dict]) -> list[dict]:
+    """Per scene and per tracer of ours (API and kernel only): closest-hit throughput
+    and its ratios to the peers."""
+    out = []
+    closest = [r for r in rows if r["query"] == "closest"]
+    for r in closest:
+        if r["family"] not in ("lbvh", "sah", "kernel"):
+            continue
+        peers = {p["tracer"]: p["rays_per_second"] for p in closest
+                 if p["scene"] == r["scene"] and p["family"] in ("embree", "warp")}
+        out.append({"scene": r["scene"], "tracer": r["tracer"], "timing": r["timing"],
+                    "rays_per_second": r["rays_per_second"], "spread": r["spread"],
+                    "peers_rays_per_second": peers, "vs": r["vs"]})
+    return out
+
+
+def targets(rows: list[dict], scene_names: list[str]) -> list[dict]:
+    """Issue 3's targets for the default tree through the API, per scene: MET, NOT MET,
+    or not measured (peer missing)."""
+    out = []
+    for scene in scene_names:
+        mine = [r for r in rows if r["scene"] == scene and r["query"] == "closest" and r["tracer"] == OURS]
+        if not mine:
+            continue
+        for peer, at_least in TARGETS:
+            r = mine[0]["vs"].get(peer)
+            entry = {"scene": scene, "query": "closest", "ours": OURS, "peer": peer,
+                     "at_least": at_least, "ratio": None, "round_min": None, "round_max": None}
+            if r is None:
+                entry["status"] = f"NOT MEASURED ({peer} not in this run)"
+            else:
+                entry.update(ratio=r["ratio"], round_min=r["round_min"], round_max=r["round_max"],
+                             status="MET" if r["ratio"] >= at_least else "NOT MET")
+            out.append(entry)
+    return out
+
+
+def cpu_use(rows: list[dict]) -> dict[str, float]:
+    """Median CPU use per tracer kind (tree names dropped: ``lbvh+collapse`` counts as ``lbvh``)."""
+    kinds: dict[str, list[float]] = {}
+    for r in rows:
+        kind = {"lbvh": "ours", "sah": "ours", "kernel": "ours (kernel only)"}.get(r["family"], r["tracer"])
+        kinds.setdefault(kind, []).append(r["cpu_over_wall"])
+    return {k: float(statistics.median(v)) for k, v in kinds.items()}
+
+
+def cpu_use_text(use: dict[str, float]) -> str:
+    return ", ".join(f"{k} {v:.2f}" for k, v in use.items()) or "-"
+
+
+def fmt_ratio(r: dict | None) -> str:
+    if r is None:
+        return "-"
+    return f"{r['ratio']:.2f} ({r['round_min']:.2f}–{r['round_max']:.2f})"
+
+
+def fmt_agreement(row: dict) -> tuple[str, str, str]:
+    """``agree``, ``agree (ties)``, ``differ: right/wrong`` cells."""
+    a = row["agreement"]
+    if a is None:
+        return "-", "-", "-"
+    judged = f"{a['disagree']}"
+    if a["disagree"]:
+        judged += f" ({a['judged']} judged: {a['right']} right, {a['wrong']} wrong)"
+    return f"{a['fraction']:.5f}", f"{a['fraction_with_ties']:.5f}", judged
+
+
+def fmt_or_dash(x: Any, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def fmt_mrays(rays_per_second: float | None) -> str:
+    return fmt_or_dash(None if rays_per_second is None else rays_per_second / 1e6, ".2f")
+
+
+def markdown(report: dict) -> str:
+    m, s = report["machine"], report["settings"]
+    lines = [
+        "# Traversal: closest hit, any hit and ambient occlusion against Embree and warp", "",
+        f"Command: `{report['command']}`  ",
+        f"Run time: {report['duration_seconds']:.0f} s on {m['cpu']}, {m['cores']} cores; "
+        f"OpenCL device: {m['opencl_device']}.  ",
+        f"Peers: {', '.join(m['peers'].values())}.  ",
+        f"Rays: {s['width']}x{s['height']} primary rays per scene (closest hit, then any hit on the "
+        f"same rays), {s['ao_samples']} AO ray(s) per hit pixel; medians of {s['repeats']} rounds, "
+        f"every tracer once per round. Reference of the agreement columns: `{REFERENCE}` "
+        f"(`{FALLBACK_REFERENCE}` without Embree).  ",
+        f"CPU use (process CPU seconds over wall seconds, median over a tracer's rows): "
+        f"{cpu_use_text(report['cpu_use'])} of {m['cores']} cores; less than a tracer can use "
+        f"(2 for ours and embree-2t) means other load on the machine.", "",
+    ]
+    for sc in report["scenes"]:
+        rays = ", ".join(f"{q} {n:,}" for q, n in sc["rays"].items())
+        lines.append(f"- **{sc['name']}**: {sc['triangles']:,} triangles, camera "
+                     f"`{sc['camera_entry']}`, primary hit fraction {sc['primary_hit_fraction']:.4f}; "
+                     f"rays: {rays}; AO reach {fmt_or_dash(sc['tmax']['ao'], '.4g')}."
+                     + "".join(f" {n}." for n in sc["notes"]))
+    for skipped in report["skipped"]:
+        lines.append(f"- {skipped['scene']}: skipped ({skipped['reason']})")
+    lines += ["", "## Closest hit: ours against the peers (same run)", "",
+              "| scene | ours | Mrays/s | spread | embree-1t | embree-2t | ours / embree-2t "
+              "| warp | ours / warp |",
+              "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in report["closest_ratios"]:
+        p = r["peers_rays_per_second"]
+        lines.append(
+            f"| {r['scene']} | {r['tracer']} | {r['rays_per_second'] / 1e6:.2f} | {r['spread']:.0%} "
+            f"| {fmt_mrays(p.get('embree-1t'))} | {fmt_mrays(p.get('embree-2t'))} "
+            f"| {fmt_ratio(r['vs'].get('embree-2t'))} "
+            f"| {fmt_mrays(p.get('warp'))} | {fmt_ratio(r['vs'].get('warp'))} |")
+    lines += ["", "## Targets (issue 3, closest hit, default `lbvh.build` tree through the API)", ""]
+    for t in report["targets"]:
+        measured = "" if t["ratio"] is None else (
+            f": {t['ratio']:.2f}x (rounds {t['round_min']:.2f}–{t['round_max']:.2f})")
+        lines.append(f"- {t['scene']}: ours >= {t['at_least']}x {t['peer']}{measured} — **{t['status']}**")
+    lines += ["", "## Every tracer, every query", "",
+              "| scene | query | tracer | Mrays/s | ms | spread | CPU use | / embree-2t | / warp "
+              "| agree | agree (ties) | disagree (oracle) | overflow |",
+              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+    for r in report["rows"]:
+        agree, ties, judged = fmt_agreement(r)
+        lines.append(
+            f"| {r['scene']} | {r['query']} | {r['tracer']} | {r['rays_per_second'] / 1e6:.2f} "
+            f"| {r['seconds'] * 1e3:.1f} | {r['spread']:.0%} | {r['cpu_over_wall']:.2f} "
+            f"| {fmt_ratio(r['vs']['embree-2t'])} | {fmt_ratio(r['vs']['warp'])} | {agree} | {ties} "
+            f"| {judged} | {fmt_or_dash(r['overflow_count'], 'd')} |")
+    lines += ["", COLUMN_NOTES]
+    return "\n".join(lines) + "\n"
+
+
+COLUMN_NOTES = """Columns: `Mrays/s` rays over the median time (`ms`): ours through
+`bvh.intersect` / `bvh.occluded` (validation, packing, transfers, read-back included), `(kernel
+only)` the traversal kernel's device time from OpenCL events on rays already on the device;
+peers: their query call (embreex `scene.run`, warp `wp.launch` with the array copies). `spread`:
+(max - min) / median of the samples: differences below it are noise. `CPU use`: process CPU
+seconds over wall seconds of the calls (PoCL's and Embree's threads included): about the cores
+busy. `/ embree-2t`, `/ warp`: this row's throughput over the peer's, ratio of the medians and,
+in brackets, the range of the per-round ratios (same round, same noise). `agree`: fraction of rays
+with the reference's hit or miss, primitive and t (within 16 u (t + s) / max(|cos|, 1e-3));
+`agree (ties)` also accepts another primitive at the same t; any hits: the same hit or miss.
+`disagree (oracle)`: rays not agreeing even with ties, and of those judged against the float64
+oracle (lbvh.check.Judge: any answer float32 rounding can give is right) how many this tracer
+got right or wrong. `overflow`: our rays whose traversal stack overflowed."""
+
+
+# -- main ----------------------------------------------------------------------------
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--quick", action="store_true",
+                   help=f"CI mode: {', '.join(QUICK_SCENES)} at {QUICK_RAYS[0]}x{QUICK_RAYS[1]} rays")
+    p.add_argument("--scenes", nargs="+", metavar="NAME",
+                   help=f"scenes (comma or space separated) from: {', '.join(bb.known_scenes())}; "
+                        f"default {','.join(FULL_SCENES)}")
+    p.add_argument("--rays", type=bb.parse_size, help="primary rays WIDTHxHEIGHT per scene "
+                   f"(default {FULL_RAYS[0]}x{FULL_RAYS[1]}, quick {QUICK_RAYS[0]}x{QUICK_RAYS[1]})")
+    p.add_argument("--repeats", type=int, default=3, help="rounds per ray set (median)")
+    p.add_argument("--budget", type=float, default=60.0,
+                   help="a tracer stops repeating a ray set after this many seconds (default 60)")
+    p.add_argument("--ao-samples", type=int, default=1, help="AO rays per hit pixel (default 1)")
+    p.add_argument("--judge", type=int, default=200,
+                   help="rays judged against the float64 oracle per ray set, at most (default 200)")
+    p.add_argument("--sah", action="store_true",
+                   help=f"also the serial SAH tree, on scenes up to {SAH_MAX_TRIANGLES:,} triangles")
+    p.add_argument("--no-peers", action="store_true", help="skip Embree and warp")
+    p.add_argument("--device", default=None, help="OpenCL device (default: $LBVH_DEVICE or PoCL)")
+    p.add_argument("--shared", type=Path, default=bb.SHARED_SCENES, help="folder of the shared scenes")
+    p.add_argument("--views", type=Path, default=None, help="also write what each camera sees here")
+    p.add_argument("--out", type=Path, default=HERE / "out", help="output folder (default bench/out)")
+    args = p.parse_args(argv)
+    for name in ("repeats", "ao_samples"):
+        if getattr(args, name) < 1:
+            p.error(f"--{name.replace('_', '-')}: at least 1")
+    if args.judge < 0:
+        p.error("--judge: at least 0")
+    names = [n for item in (args.scenes or []) for n in item.split(",") if n]
+    unknown = [n for n in names if n not in bb.known_scenes()]
+    if unknown:
+        p.error(f"--scenes: unknown scene {unknown[0]!r}; known: {', '.join(bb.known_scenes())}")
+    args.scene_names = names or list(QUICK_SCENES if args.quick else FULL_SCENES)
+    args.size = args.rays or (QUICK_RAYS if args.quick else FULL_RAYS)
+    return args
+
+
+def load_scene(name: str, size: tuple[int, int], cameras: dict[str, dict], shared: Path) -> bb.Scene | str:
+    """The scene with its camera (``CAMERA_OF`` picks another entry), or why it is skipped."""
+    entry = CAMERA_OF.get(name, name)
+    if entry not in cameras:
+        return f"no camera {entry!r} in {bb.CAMERAS.name}"
+    return bb.load_bench_scene(name, size, {**cameras, name: cameras[entry]}, shared)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Run the bench; returns the report (also written as JSON and Markdown)."""
+    args = parse_args(argv)
+    started = time.perf_counter()
+    command = " ".join([".venv/bin/python bench/bench_traverse.py",
+                        *(sys.argv[1:] if argv is None else argv)])
+    ctx = dev.get_context(args.device)
+    peers, peer_status = bb.load_peers(not args.no_peers)
+    cameras = bb.load_cameras()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    progress = bb.Progress(len(args.scene_names) * steps_per_scene(args.repeats))
+    scenes, rows, skipped = [], [], []
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        for name in args.scene_names:
+            progress.begin(f"{name}:")
+            progress.note("loading")
+            scene = load_scene(name, args.size, cameras, args.shared)
+            if isinstance(scene, str):
+                skipped.append({"scene": name, "reason": scene})
+                progress.done += steps_per_scene(args.repeats)
+                continue
+            summary, scene_rows = bench_scene(scene, ctx, peers, pool, args, progress)
+            scenes.append(summary)
+            rows += scene_rows
+    progress.close()
+    report = {
+        "command": command,
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "machine": bb.machine_info(ctx, peer_status),
+        "settings": {"scenes": args.scene_names, "width": args.size[0], "height": args.size[1],
+                     "repeats": args.repeats, "budget": args.budget, "ao_samples": args.ao_samples,
+                     "ao_distance": AO_DISTANCE, "judge": args.judge, "sah": args.sah,
+                     "quick": args.quick, "reference": REFERENCE,
+                     "fallback_reference": FALLBACK_REFERENCE, "embree_chunks": EMBREE_CHUNKS,
+                     "warp_constructor": WARP_CONSTRUCTOR,
+                     "t_bound": f"{bb.T_BOUND_ULPS} * 2^-24 * (t_ref + s) / max(|cos a|, {bb.COS_FLOOR})"},
+        "scenes": scenes, "skipped": skipped, "rows": rows,
+        "closest_ratios": closest_ratios(rows),
+        "targets": targets(rows, [s["name"] for s in scenes]),
+        "cpu_use": cpu_use(rows),
+    }
+    write_outputs(report, out, started)
+    return report
+
+
+def write_outputs(report: dict, out: Path, started: float) -> None:
+    report["duration_seconds"] = time.perf_counter() - started
+    paths = {"json": out / "bench_traverse.json", "markdown": out / "bench_traverse.md"}
+    report["outputs"] = {k: str(p) for k, p in paths.items()}
+    text = markdown(report)
+    paths["markdown"].write_text(text)
+    paths["json"].write_text(json.dumps(report, indent=1, allow_nan=False) + "\n")
+    print(text)
+    print(f"[bench] written to {out}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
