@@ -60,6 +60,7 @@ import datetime
 import importlib
 import json
 import statistics
+import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -679,6 +680,9 @@ def markdown(report: dict) -> str:
         f"Run time: {report['duration_seconds']:.0f} s on {m['cpu']}, {m['cores']} cores; "
         f"OpenCL device: {m['opencl_device']}.  ",
         f"Peers: {', '.join(m['peers'].values())}.  ",
+        f"Code: commit {str(report['source']['commit'])[:10]}"
+        + (f" with uncommitted changes to {', '.join(report['source']['modified'])}"
+           if report["source"]["modified"] else "") + ".  ",
         f"Rays: {s['width']}x{s['height']} primary rays per scene (closest hit, then any hit on the "
         f"same rays), {s['ao_samples']} AO ray(s) per hit pixel; medians of {s['repeats']} rounds, "
         f"every tracer once per round. Reference of the agreement columns: `{REFERENCE}` "
@@ -781,6 +785,19 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return args
 
 
+def source_state() -> dict:
+    """The commit measured and the library files that differ from it (the kernels and
+    the traversal change under active tuning: a figure must say which code it timed)."""
+    def git(*argv: str) -> str:
+        try:
+            return subprocess.run(["git", *argv], cwd=HERE.parent, capture_output=True, text=True,
+                                  timeout=30).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+    return {"commit": git("rev-parse", "HEAD") or None,
+            "modified": git("diff", "--name-only", "HEAD", "--", "lbvh", "kernels").split()}
+
+
 def load_scene(name: str, size: tuple[int, int], cameras: dict[str, dict], shared: Path) -> bb.Scene | str:
     """The scene with its camera (``CAMERA_OF`` picks another entry), or why it is skipped."""
     entry = CAMERA_OF.get(name, name)
@@ -819,6 +836,7 @@ def main(argv: list[str] | None = None) -> dict:
         "command": command,
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "machine": bb.machine_info(ctx, peer_status),
+        "source": source_state(),
         "settings": {"scenes": args.scene_names, "width": args.size[0], "height": args.size[1],
                      "repeats": args.repeats, "budget": args.budget, "ao_samples": args.ao_samples,
                      "ao_distance": AO_DISTANCE, "judge": args.judge, "sah": args.sah,
