@@ -1,6 +1,15 @@
 /* Ray traversal of a BVH in the project's layout (docs/layout.md), driven by
  * lbvh/traverse.py.
  *
+ * Two kernels:
+ *   pack_pairs  rewrites any tree of the layout as child-pair records, once
+ *               per tree (and after a refit): record r holds the boxes of both
+ *               children of internal node r, so that a visit reads one 64-byte
+ *               record instead of three 32-byte ones (Aila & Laine 2009,
+ *               "Understanding the Efficiency of Ray Traversal on GPUs":
+ *               child boxes stored in the parent).
+ *   traverse    traces rays through the pair records.
+ *
  * A work-item traces the rays [chunk_first, chunk_last) one after the other
  * (the host gives every work-item one ray, in work-groups of 64, on PoCL as on
  * a GPU) with an explicit stack, in closest-hit or any-hit mode.
@@ -22,13 +31,15 @@
  *                    drops that subtree (reported, never silent)
  *   SLAB_PAD=x       factor on the far distance of a box (Ize 2013)
  *   NO_FP64=1        leave out the double fallback of the watertight test
+ *   PAIRS=0          read the tree's own nodes instead of the pair records
  *
- * Rays are float8 records (origin.xyz, tmin, direction.xyz, tmax); results are
- * float4 (t, u, v, as_float(prim)) with prim in the caller's original
- * numbering, -1 and t = +inf for a miss. The hit point is
- * (1-u-v)*p0 + u*p1 + v*p2. The host rejects NaN and infinite rays; the loop
- * is bounded by the stack and by a visit limit of num_nodes, so even a NaN ray
- * or a cyclic tree terminates.
+ * Rays come as four arrays: origins and directions (3 floats per ray), tmin
+ * and tmax (one float per ray, or one for all rays with a stride of 0).
+ * Results are four planes of `count` floats: t, u, v, as_float(prim), with
+ * prim in the caller's original numbering, -1 and t = +inf for a miss. The
+ * hit point is (1-u-v)*p0 + u*p1 + v*p2. The host rejects NaN and infinite
+ * rays; the loop is bounded by the stack and by a visit limit of num_nodes,
+ * so even a NaN ray or a cyclic tree terminates.
  */
 #include "common.h"
 
@@ -88,10 +99,10 @@ typedef struct {
 
 inline float axis(float x, float y, float z, int k) { return k == 0 ? x : (k == 1 ? y : z); }
 
-inline Ray make_ray(__global const float *r) {
+inline Ray make_ray(__global const float *o, __global const float *d, float tmin, float tmax) {
     Ray ray;
-    ray.ox = r[0]; ray.oy = r[1]; ray.oz = r[2]; ray.tmin = r[3];
-    ray.dx = r[4]; ray.dy = r[5]; ray.dz = r[6]; ray.tmax = r[7];
+    ray.ox = o[0]; ray.oy = o[1]; ray.oz = o[2]; ray.tmin = tmin;
+    ray.dx = d[0]; ray.dy = d[1]; ray.dz = d[2]; ray.tmax = tmax;
     /* A direction far from unit length (tiny or denormal components, or
      * huge ones) makes 1/d and the shear constants leave float32's range.
      * Scaling d by a power of two (and t the other way) is exact, so such a
@@ -131,7 +142,8 @@ inline Ray make_ray(__global const float *r) {
     return ray;
 }
 
-/* Slab test (Kay-Kajiya) of node `c`, made robust:
+/* Slab test (Kay-Kajiya) of the box record at `box`
+ * (lower.xyz, word, upper.xyz, word), made robust:
  * - near and far planes picked by the sign bit of d (-0.0 is negative);
  * - an origin on a slab plane with a zero direction component gives
  *   0 * inf = NaN on that axis; max_keep/min_keep ignore it, so that axis does
@@ -142,9 +154,8 @@ inline Ray make_ray(__global const float *r) {
  *   the reciprocal and the product, so no box containing a hit is lost.
  * Returns whether [entry, exit] meets [ray.tmin, limit]; *leave is the box's
  * own exit distance (unpadded), used to order children of equal entry. */
-inline int slab(__global const float *nf, int c, const Ray *ray, float limit,
+inline int slab(__global const float *box, const Ray *ray, float limit,
                 float *entry, float *leave) {
-    __global const float *box = nf + 8 * c;
     float t0 = ray->tmin;
     t0 = max_keep((box[ray->nx] - ray->ox) * ray->ix, t0);
     t0 = max_keep((box[ray->ny] - ray->oy) * ray->iy, t0);
@@ -290,76 +301,161 @@ inline int hit_triangle(__global const float *vertices, int i0, int i1, int i2, 
 }
 #endif
 
-__kernel void traverse(__global const float4 *nodes, __global const int *prim_order,
+/* Child-pair records: record r (64 bytes, four float4) is internal node r's
+ * two children, left then right, each as (lower.xyz, as_float(x),
+ * upper.xyz, as_float(y)): a leaf child keeps its node words (x = first slot,
+ * y = -count < 0); an internal child gets x = its own record's index, y = 0.
+ * Records are numbered by `rank` (the rank of a node among the internal
+ * nodes, use_rank = 1) or by node index (use_rank = 0: the Karras numbering,
+ * internal nodes first). A child index outside [0, num_nodes) is reported in
+ * *bad_node (the least such parent), and its slot is left zero. */
+inline void pack_child(__global const float4 *nodes, int c, __global const int *rank,
+                       int use_rank, __global float4 *slot) {
+    const float4 lo = nodes[2 * c], hi = nodes[2 * c + 1];
+    const int y = as_int(hi.w);
+    const int internal = !node_is_leaf(y);
+    const int x = internal ? (use_rank ? rank[c] : c) : as_int(lo.w);
+    slot[0] = (float4)(lo.xyz, as_float(x));
+    slot[1] = (float4)(hi.xyz, as_float(internal ? 0 : y));
+}
+
+__kernel void pack_pairs(__global const float4 *nodes, const int num_nodes, const int per_item,
+                         __global const int *rank, const int use_rank,
+                         __global float4 *pairs, __global int *bad_node) {
+    const int gid = get_global_id(0);
+    const int first = chunk_first(gid, per_item, num_nodes);
+    const int last = chunk_last(gid, per_item, num_nodes);
+    __global const int *ni = (__global const int *)nodes;
+    for (int i = first; i < last; ++i) {
+        const int a = ni[8 * i + 3], b = ni[8 * i + 7];
+        if (node_is_leaf(b)) continue;
+        __global float4 *record = pairs + 4 * (use_rank ? rank[i] : i);
+        if ((uint)a >= (uint)num_nodes || (uint)b >= (uint)num_nodes) {
+            atomic_min(bad_node, i);
+            for (int k = 0; k < 4; ++k) record[k] = (float4)(0.0f);
+            continue;
+        }
+        pack_child(nodes, a, rank, use_rank, record);
+        pack_child(nodes, b, rank, use_rank, record + 2);
+    }
+}
+
+#ifndef PAIRS
+#define PAIRS 1
+#endif
+
+/* The box and the reference of child k (0 left, 1 right) of internal node x:
+ * from x's pair record (PAIRS=1), or from the tree's own nodes (PAIRS=0, for
+ * trees whose pair records would not fit in one device buffer; records and
+ * words are then the node array and x is a node index). */
+inline __global const float *child_box(__global const float *records, __global const int *words,
+                                       int x, int k) {
+#if PAIRS
+    return records + 16 * x + 8 * k;
+#else
+    return records + 8 * words[8 * x + 3 + 4 * k];
+#endif
+}
+inline int2 child_ref(__global const int *words, int x, int k) {
+#if PAIRS
+    return (int2)(words[16 * x + 8 * k + 3], words[16 * x + 8 * k + 7]);
+#else
+    const int c = words[8 * x + 3 + 4 * k];
+    const int y = words[8 * c + 7];
+    return node_is_leaf(y) ? (int2)(words[8 * c + 3], y) : (int2)(c, 0);
+#endif
+}
+
+/* Rays origins[3i..], directions[3i..], tmin[i * interval_stride],
+ * tmax[i * interval_stride]. The root's box is tested from its node; the root
+ * enters the loop as the reference (root_x, root_y), in the encoding of the
+ * pair records (see pack_pairs); `pairs` is the node array itself with
+ * PAIRS=0. */
+__kernel void traverse(__global const float4 *nodes, __global const float4 *pairs,
+                       __global const int *prim_order,
                        __global const float *vertices, __global const uint *faces,
-                       const int root, const int num_nodes,
-                       __global const float8 *rays, __global float4 *hits,
-                       __global int *flags, __global int2 *counters,
+                       const int root, const int root_x, const int root_y, const int num_nodes,
+                       __global const float *origins, __global const float *directions,
+                       __global const float *tmins, __global const float *tmaxs,
+                       const int interval_stride,
+                       __global float *hits, __global int *flags, __global int2 *counters,
                        const int count, const int per_item) {
     const int gid = get_global_id(0);
     const int first = chunk_first(gid, per_item, count);
     const int last = chunk_last(gid, per_item, count);
-    __global const float *nf = (__global const float *)nodes;
-    __global const int *ni = (__global const int *)nodes;
-    int stack_node[STACK_SIZE];
-    float stack_entry[STACK_SIZE];  /* entry distance, to drop subtrees behind a closer hit */
+    __global const float *pf = (__global const float *)pairs;
+    __global const int *pw = (__global const int *)pairs;
+    /* A stack entry is a reference (x, y) in the pairs' encoding and the
+     * entry distance, to drop subtrees behind a closer hit. */
+    int stack_x[STACK_SIZE];
+    int stack_y[STACK_SIZE];
+    float stack_entry[STACK_SIZE];
 
     for (int i = first; i < last; ++i) {
-        const Ray ray = make_ray((__global const float *)(rays + i));
+        const Ray ray = make_ray(origins + 3 * i, directions + 3 * i,
+                                 tmins[i * interval_stride], tmaxs[i * interval_stride]);
         float best = INFINITY, bu = 0.0f, bv = 0.0f;
-        int best_prim = -1, flag = 0, visited = 1, tested = 0;
+        int best_slot = -1, flag = 0, visited = 1, tested = 0;
         int sp = 0;
         float entry, leave;
-        int node = root;
-        int go = slab(nf, root, &ray, ray.tmax, &entry, &leave);
+        int x = root_x, y = root_y;
+        int go = slab((__global const float *)(nodes + 2 * root), &ray, ray.tmax, &entry, &leave);
         while (go) {
-            const int a = ni[8 * node + 3], b = ni[8 * node + 7];
-            int next = -1;
-            if (node_is_leaf(b)) {
-                for (int s = a; s < a - b; ++s) {
+            int have_next = 0, next_x = 0, next_y = 0;
+            if (node_is_leaf(y)) {
+                for (int s = x; s < x - y; ++s) {
                     const int prim = prim_order[s];
                     ++tested;
                     if (hit_triangle(vertices, 3 * (int)faces[3 * prim], 3 * (int)faces[3 * prim + 1],
                                      3 * (int)faces[3 * prim + 2], &ray, &best, &bu, &bv)) {
-                        best_prim = prim;
+                        best_slot = s;
 #if ANY_HIT
                         break;
 #endif
                     }
                 }
 #if ANY_HIT
-                if (best_prim >= 0) break;
+                if (best_slot >= 0) break;
 #endif
             } else {
                 const float limit = min_keep(best, ray.tmax);
                 float e0, x0, e1, x1;
-                const int h0 = slab(nf, a, &ray, limit, &e0, &x0);
-                const int h1 = slab(nf, b, &ray, limit, &e1, &x1);
+                const int h0 = slab(child_box(pf, pw, x, 0), &ray, limit, &e0, &x0);
+                const int h1 = slab(child_box(pf, pw, x, 1), &ray, limit, &e1, &x1);
                 if (h0 && h1) {
                     /* Nearer entry first; equal entries: nearer exit; else the right child. */
                     const int left_first = e0 < e1 || (e0 == e1 && x0 < x1);
-                    next = left_first ? a : b;
+                    const int2 near = child_ref(pw, x, left_first ? 0 : 1);
+                    next_x = near.x;
+                    next_y = near.y;
+                    have_next = 1;
                     if (sp < STACK_SIZE) {
-                        stack_node[sp] = left_first ? b : a;
+                        const int2 far = child_ref(pw, x, left_first ? 1 : 0);
+                        stack_x[sp] = far.x;
+                        stack_y[sp] = far.y;
                         stack_entry[sp] = left_first ? e1 : e0;
                         ++sp;
                     } else {
                         flag |= FLAG_OVERFLOW;
                     }
-                } else if (h0) {
-                    next = a;
-                } else if (h1) {
-                    next = b;
+                } else if (h0 || h1) {
+                    const int2 only = child_ref(pw, x, h0 ? 0 : 1);
+                    next_x = only.x;
+                    next_y = only.y;
+                    have_next = 1;
                 }
             }
-            if (next < 0) {
+            if (!have_next) {
                 /* Pop, dropping subtrees whose entry lies beyond the closest hit. */
                 const float cut = min_keep(best, ray.tmax) * SLAB_PAD;
                 while (sp > 0 && stack_entry[sp - 1] > cut) --sp;
                 if (sp == 0) break;
-                next = stack_node[--sp];
+                --sp;
+                next_x = stack_x[sp];
+                next_y = stack_y[sp];
             }
-            node = next;
+            x = next_x;
+            y = next_y;
             if (++visited > num_nodes) {
                 flag |= FLAG_VISIT_LIMIT;
                 break;
@@ -367,7 +463,10 @@ __kernel void traverse(__global const float4 *nodes, __global const int *prim_or
         }
         /* + 0.0f turns a t of -0.0 (T = -0) into +0.0 */
         if (ray.texp != 0) best = ldexp(best, -ray.texp);
-        hits[i] = (float4)(best + 0.0f, bu, bv, as_float(best_prim));
+        hits[i] = best + 0.0f;
+        hits[count + i] = bu;
+        hits[2 * count + i] = bv;
+        hits[3 * count + i] = as_float(best_slot >= 0 ? prim_order[best_slot] : -1);
         flags[i] = flag;
 #if COUNTERS
         counters[i] = (int2)(visited, tested);

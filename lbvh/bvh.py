@@ -58,6 +58,7 @@ class BVH:
         # builders pass the list of their leaf nodes for the device refit.
         self._leaf_nodes = leaf_nodes
         self._leaf_nodes_buf: cl.Buffer | None = None
+        self._pairs = None          # child-pair records of the traversal (lbvh.traverse.pairs_for)
         self._host: dict[str, np.ndarray] = {}
 
     # -- construction from host arrays (other builders, load) ----------------
@@ -166,6 +167,7 @@ class BVH:
                     self.parent_buf, self.num_prims, self.num_nodes, self._leaf_nodes_device())
         self.vertices_buf, self.vertices = new_buf, v
         self._host.clear()
+        self._pairs = None   # the traversal's copies of the boxes are stale
         return self
 
     def leaf_walks(self) -> tuple[cl.Buffer | None, int, int]:

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from .geometry import as_faces, as_vertices
-from .traverse import Hits, pack_rays
+from .traverse import Hits, check_rays
 
 #: Sine of the angle between two edges below which the oracle calls a triangle degenerate.
 DEGENERATE_SINE = 2.0 ** -20
@@ -92,12 +92,11 @@ class _Rays:
     """Validated rays with the per-ray constants of the watertight test."""
 
     def __init__(self, origins: Any, directions: Any, tmin: Any, tmax: Any, dtype) -> None:
-        packed = pack_rays(origins, directions, tmin, tmax)
-        self.count = len(packed)
-        self.origin = packed["origin"]
-        self.direction = packed["direction"]
-        self.tmin = packed["tmin"]
-        self.tmax = packed["tmax"]
+        rays = check_rays(origins, directions, tmin, tmax)
+        self.count = len(rays)
+        self.origin = rays.origins
+        self.direction = rays.directions
+        self.tmin, self.tmax = rays.intervals()
         self.axes = woop_axes(self.direction)
         rows = np.arange(self.count)[:, None]
         d = self.direction[rows, self.axes].astype(dtype)

@@ -488,11 +488,10 @@ def test_kernel_terminates_on_a_cyclic_tree_and_on_nan_rays():
     assert got.overflow[0] and got.nodes_visited[0] <= bvh.num_nodes + 1
     # a NaN ray handed to the device entry directly (the host API refuses it) terminates
     good = tree("teapot", "lbvh30")
-    rays = tr.pack_rays(np.zeros((2, 3)), np.ones((2, 3)))
-    rays["direction"][0] = np.nan
-    rays["origin"][1] = np.nan
-    buf = cl.Buffer(good.ctx.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=rays)
-    out = tr.trace_buffers(good, buf, 2, counters=True)
+    rays = tr.check_rays(np.zeros((2, 3)), np.ones((2, 3)))
+    rays.directions[0] = np.nan
+    rays.origins[1] = np.nan
+    out = tr.trace_buffers(good, tr.upload_rays(good.ctx, rays), counters=True)
     out.event.wait()
     counts = np.empty((2, 2), np.int32)
     cl.enqueue_copy(good.ctx.queue, counts, out.counters, is_blocking=True)
@@ -598,3 +597,93 @@ def test_conference_zero_area_triangles_are_never_hit():
     got = bvh.intersect(o, d)
     assert got.hit.any() and not zero[got.prim[got.hit]].any()
     assert_matches_oracle(v, f, o, d, got, brute_force(v, f, o, d))
+
+
+# -- child-pair records (pack_pairs) -------------------------------------------------
+
+def _device_pairs(bvh):
+    pairs = tr.pairs_for(bvh)
+    assert pairs.packed
+    records = max(bvh.num_nodes - len(bvh.leaf_nodes), 1)
+    return dev_pairs_array(bvh, pairs, records)
+
+
+def dev_pairs_array(bvh, pairs, records):
+    out = np.empty((records, 2), lbvh.layout.NODE_DTYPE)
+    cl.enqueue_copy(bvh.ctx.queue, out, pairs.buffer, is_blocking=True)
+    return out
+
+
+@pytest.mark.parametrize("kind", ["lbvh30", "lbvh_collapse", "sah", "host_median", "one_leaf"])
+def test_pair_records_equal_their_numpy_twin(kind):
+    """pack_pairs copies boxes and words: exactly the numpy twin's bytes, for the Karras
+    numbering (rank = node index) and for trees with a leaf list (rank by count)."""
+    bvh = tree("teapot", kind)
+    rank = tr.internal_rank(bvh.num_nodes, bvh._leaf_nodes)
+    twin = tr.pack_pairs_numpy(bvh.nodes, rank)
+    if len(twin):
+        assert _device_pairs(bvh).tobytes() == twin.tobytes()
+    # the root's reference in the records' encoding
+    pairs = tr.pairs_for(bvh)
+    root = bvh.nodes[bvh.root]
+    if root["b"] < 0:
+        assert (pairs.root_x, pairs.root_y) == (root["a"], root["b"])
+    else:
+        assert pairs.root_y == 0
+        assert pairs.root_x == (bvh.root if rank is None else rank[bvh.root])
+
+
+def test_traversal_through_the_nodes_equals_the_pair_records():
+    """The fallback for trees whose records exceed the largest device buffer (PAIRS=0)
+    gives the same hits, bit for bit, and the same counters."""
+    o, d = ray_set("teapot")
+    for kind in ("lbvh30", "sah"):
+        v, f = scene("teapot")
+        packed = tree("teapot", kind)
+        plain = lbvh.BVH.from_arrays(packed.nodes, packed.prim_order, packed.root, v, f, builder=kind)
+        assert not tr.pairs_for(plain, max_bytes=0).packed
+        a = packed.intersect(o, d, counters=True)
+        b = plain.intersect(o, d, counters=True)
+        for field in ("t", "prim", "u", "v", "nodes_visited", "tris_tested"):
+            assert (getattr(a, field) == getattr(b, field)).all(), (kind, field)
+        assert (packed.occluded(o, d) == plain.occluded(o, d)).all()
+
+
+def test_refit_drops_the_pair_records():
+    """Records copy the boxes: after a refit the next query must see the moved mesh."""
+    v, f = scene("suzanne")
+    o, d = ray_set("suzanne")
+    bvh = lbvh.build(v, f)
+    before = bvh.intersect(o, d)
+    shift = np.float32([0.0, 0.0, 0.5])
+    bvh.refit(v + shift)
+    moved = bvh.intersect(o, d)
+    fresh = lbvh.build(v + shift, f).intersect(o, d)
+    assert (moved.prim == fresh.prim).all() and (moved.t == fresh.t).all()
+    assert not (moved.t[before.hit] == before.t[before.hit]).all()
+
+
+def test_a_child_index_out_of_range_is_refused_before_tracing():
+    """from_arrays refuses such a tree; one corrupted on the device is caught by the
+    packing kernel, with the node named, before any ray runs."""
+    v, f = scene("suzanne")
+    bvh = lbvh.build(v, f)
+    cl.enqueue_copy(bvh.ctx.queue, bvh.nodes_buf, np.int32([10**6]), dst_offset=32 * 5 + 28,
+                    is_blocking=True)    # node 5's right child
+    with pytest.raises(ValueError, match=rf"node 5 has a child index outside \[0, {bvh.num_nodes}\)"):
+        bvh.intersect(np.float32([[0.2, 0.2, 1]]), np.float32([[0, 0, -1]]))
+
+
+def test_per_ray_intervals_across_batches():
+    o, d = ray_set("suzanne")
+    bvh = tree("suzanne", "lbvh30")
+    full = bvh.intersect(o, d)
+    rng = np.random.default_rng(7)
+    tmax = np.where(rng.random(len(o)) < 0.5, np.inf, full.t * 0.5).astype(np.float32)
+    tmax[~np.isfinite(tmax)] = np.inf
+    whole = bvh.intersect(o, d, 0.0, tmax)
+    batched = bvh.intersect(o, d, 0.0, tmax, batch_size=97)
+    assert (whole.prim == batched.prim).all() and (whole.t == batched.t).all()
+    cut = tmax < full.t
+    assert not whole.hit[cut & full.hit].any() or (whole.t[cut & whole.hit] <= tmax[cut & whole.hit]).all()
+    assert (whole.prim[~cut] == full.prim[~cut]).all()
