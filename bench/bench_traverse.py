@@ -59,6 +59,7 @@ import contextlib
 import datetime
 import importlib
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -325,6 +326,31 @@ class WarpTracer:
         self.mesh = None
 
 
+def machine_busy_seconds() -> float | None:
+    """CPU seconds every process on the machine has spent busy so far (Linux
+    ``/proc/stat``: user, nice, system, irq, softirq and steal time), or None."""
+    try:
+        fields = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    user, nice, system, _idle, _iowait, irq, softirq, steal = fields
+    return (user + nice + system + irq + softirq + steal) / os.sysconf("SC_CLK_TCK")
+
+
+#: /proc/stat counts in ticks (10 ms): shorter samples get no other-load figure.
+MIN_TICKS = 20
+
+
+def other_load(busy_before: float | None, busy_after: float | None, own_cpu: float,
+               wall: float) -> float | None:
+    """Cores kept busy by other processes (or the hypervisor) during a sample: the
+    machine's busy CPU seconds minus this process's, over the wall time (>= 0); None
+    without /proc/stat or for a sample shorter than :data:`MIN_TICKS` ticks."""
+    if busy_before is None or busy_after is None or wall < MIN_TICKS / os.sysconf("SC_CLK_TCK"):
+        return None
+    return max(0.0, (busy_after - busy_before - own_cpu) / wall)
+
+
 @dataclass
 class Contestant:
     """One tracer on one scene: its samples per query and its latest answers."""
@@ -336,6 +362,7 @@ class Contestant:
     seconds: dict[str, list[float]] = field(default_factory=dict)
     wall: dict[str, list[float]] = field(default_factory=dict)
     cpu: dict[str, list[float]] = field(default_factory=dict)
+    others: dict[str, list[float | None]] = field(default_factory=dict)
     answer: dict[str, Answer | None] = field(default_factory=dict)
 
     @property
@@ -343,11 +370,13 @@ class Contestant:
         return self.variant.name
 
     def run(self, rays: RaySet) -> None:
-        c0, t0 = time.process_time(), time.perf_counter()
+        b0, c0, t0 = machine_busy_seconds(), time.process_time(), time.perf_counter()
         answer, device_seconds = self.tracer.trace(rays)
         wall = time.perf_counter() - t0
+        cpu = time.process_time() - c0
         q = rays.query
-        self.cpu.setdefault(q, []).append(time.process_time() - c0)
+        self.others.setdefault(q, []).append(other_load(b0, machine_busy_seconds(), cpu, wall))
+        self.cpu.setdefault(q, []).append(cpu)
         self.wall.setdefault(q, []).append(wall)
         self.seconds.setdefault(q, []).append(wall if device_seconds is None else device_seconds)
         self.answer[q] = answer
@@ -491,13 +520,18 @@ def compare(scene: bb.Scene, rays: RaySet, contestants: list[Contestant], judge_
 # -- rows -----------------------------------------------------------------------------
 
 ROW_FIELDS = ("scene", "query", "tracer", "family", "threads", "timing", "rays", "seconds",
-              "samples", "wall_samples", "cpu_over_wall", "rays_per_second", "spread",
+              "samples", "wall_samples", "cpu_over_wall", "other_load", "rays_per_second", "spread",
               "hit_fraction", "overflow_count", "agreement", "vs", "null_reasons")
 
 
 def spread(samples: list[float]) -> float:
     """(max - min) / median: how far the repeats scatter."""
     return float((max(samples) - min(samples)) / statistics.median(samples))
+
+
+def median_or_none(values: list[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return float(statistics.median(known)) if known else None
 
 
 def ratio_to(c: Contestant, peer: Contestant | None, query: str) -> dict | None:
@@ -523,6 +557,7 @@ def make_rows(scene: bb.Scene, rays: RaySet, contestants: list[Contestant], figu
                    threads=c.threads, timing=c.timing, rays=len(rays), seconds=seconds,
                    samples=c.seconds[q], wall_samples=c.wall[q],
                    cpu_over_wall=bb.cores_used(c.cpu[q], c.wall[q]),
+                   other_load=median_or_none(c.others[q]),
                    rays_per_second=len(rays) / seconds, spread=spread(c.seconds[q]),
                    vs={peer: ratio_to(c, by_name.get(peer), q) for peer in ("embree-1t", "embree-2t", "warp")},
                    null_reasons={})
@@ -538,6 +573,9 @@ def make_rows(scene: bb.Scene, rays: RaySet, contestants: list[Contestant], figu
                 row["null_reasons"]["overflow_count"] = "peer: no stack to overflow is reported"
             else:
                 row["overflow_count"] = a.overflow
+        if row["other_load"] is None:
+            row["null_reasons"]["other_load"] = (f"no /proc/stat, or samples shorter than "
+                                                 f"{MIN_TICKS} of its ticks")
         for peer, r in row["vs"].items():
             if r is None:
                 row["null_reasons"][f"vs {peer}"] = ("itself" if peer == c.name
@@ -613,18 +651,34 @@ def closest_ratios(rows: list[dict]) -> list[dict]:
     return out
 
 
+#: Below this CPU use a two-thread tracer did not get both cores of the 2-core machine.
+BOTH_CORES = 1.5
+
+
+def caveat(mine: dict, theirs: dict | None) -> str | None:
+    """Why a ratio of ours to a peer may not be what the target means: a tracer that
+    should use both cores got fewer (other processes took them)."""
+    starved = [f"{r['tracer']} used {r['cpu_over_wall']:.2f} cores (other load "
+               f"{fmt_or_dash(r['other_load'], '.2f')})"
+               for r in (mine, theirs) if r is not None and (r["threads"] or 2) >= 2
+               and r["cpu_over_wall"] < BOTH_CORES]
+    return "; ".join(starved) + ": not both cores" if starved else None
+
+
 def targets(rows: list[dict], scene_names: list[str]) -> list[dict]:
     """Issue 3's targets for the default tree through the API, per scene: MET, NOT MET,
-    or not measured (peer missing)."""
+    or not measured (peer missing), with a caveat where a tracer did not get both cores."""
     out = []
     for scene in scene_names:
-        mine = [r for r in rows if r["scene"] == scene and r["query"] == "closest" and r["tracer"] == OURS]
-        if not mine:
+        closest = {r["tracer"]: r for r in rows if r["scene"] == scene and r["query"] == "closest"}
+        if OURS not in closest:
             continue
+        mine = [closest[OURS]]
         for peer, at_least in TARGETS:
             r = mine[0]["vs"].get(peer)
             entry = {"scene": scene, "query": "closest", "ours": OURS, "peer": peer,
-                     "at_least": at_least, "ratio": None, "round_min": None, "round_max": None}
+                     "at_least": at_least, "ratio": None, "round_min": None, "round_max": None,
+                     "caveat": caveat(mine[0], closest.get(peer))}
             if r is None:
                 entry["status"] = f"NOT MEASURED ({peer} not in this run)"
             else:
@@ -682,14 +736,18 @@ def markdown(report: dict) -> str:
         f"Peers: {', '.join(m['peers'].values())}.  ",
         f"Code: commit {str(report['source']['commit'])[:10]}"
         + (f" with uncommitted changes to {', '.join(report['source']['modified'])}"
-           if report["source"]["modified"] else "") + ".  ",
+           if report["source"]["modified"] else "")
+        + (" **The code changed during the run.**" if report["source"]["changed_during_run"] else "")
+        + "  ",
         f"Rays: {s['width']}x{s['height']} primary rays per scene (closest hit, then any hit on the "
         f"same rays), {s['ao_samples']} AO ray(s) per hit pixel; medians of {s['repeats']} rounds, "
         f"every tracer once per round. Reference of the agreement columns: `{REFERENCE}` "
         f"(`{FALLBACK_REFERENCE}` without Embree).  ",
         f"CPU use (process CPU seconds over wall seconds, median over a tracer's rows): "
         f"{cpu_use_text(report['cpu_use'])} of {m['cores']} cores; less than a tracer can use "
-        f"(2 for ours and embree-2t) means other load on the machine.", "",
+        f"(2 for ours and embree-2t) means other load on the machine. Other processes kept "
+        f"{fmt_or_dash(report['other_load']['median'], '.2f')} cores busy during the median row's "
+        f"samples ({fmt_or_dash(report['other_load']['max'], '.2f')} in the worst row).", "",
     ]
     for sc in report["scenes"]:
         rays = ", ".join(f"{q} {n:,}" for q, n in sc["rays"].items())
@@ -714,16 +772,18 @@ def markdown(report: dict) -> str:
     for t in report["targets"]:
         measured = "" if t["ratio"] is None else (
             f": {t['ratio']:.2f}x (rounds {t['round_min']:.2f}–{t['round_max']:.2f})")
-        lines.append(f"- {t['scene']}: ours >= {t['at_least']}x {t['peer']}{measured} — **{t['status']}**")
+        lines.append(f"- {t['scene']}: ours >= {t['at_least']}x {t['peer']}{measured} — **{t['status']}**"
+                     + (f" (caveat: {t['caveat']})" if t["caveat"] else ""))
     lines += ["", "## Every tracer, every query", "",
-              "| scene | query | tracer | Mrays/s | ms | spread | CPU use | / embree-2t | / warp "
-              "| agree | agree (ties) | disagree (oracle) | overflow |",
-              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+              "| scene | query | tracer | Mrays/s | ms | spread | CPU use | other load | / embree-2t "
+              "| / warp | agree | agree (ties) | disagree (oracle) | overflow |",
+              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
     for r in report["rows"]:
         agree, ties, judged = fmt_agreement(r)
         lines.append(
             f"| {r['scene']} | {r['query']} | {r['tracer']} | {r['rays_per_second'] / 1e6:.2f} "
             f"| {r['seconds'] * 1e3:.1f} | {r['spread']:.0%} | {r['cpu_over_wall']:.2f} "
+            f"| {fmt_or_dash(r['other_load'], '.2f')} "
             f"| {fmt_ratio(r['vs']['embree-2t'])} | {fmt_ratio(r['vs']['warp'])} | {agree} | {ties} "
             f"| {judged} | {fmt_or_dash(r['overflow_count'], 'd')} |")
     lines += ["", COLUMN_NOTES]
@@ -736,7 +796,8 @@ only)` the traversal kernel's device time from OpenCL events on rays already on 
 peers: their query call (embreex `scene.run`, warp `wp.launch` with the array copies). `spread`:
 (max - min) / median of the samples: differences below it are noise. `CPU use`: process CPU
 seconds over wall seconds of the calls (PoCL's and Embree's threads included): about the cores
-busy. `/ embree-2t`, `/ warp`: this row's throughput over the peer's, ratio of the medians and,
+busy; `other load`: cores other processes kept busy meanwhile (machine-wide busy CPU
+time from /proc/stat minus this process's, over the wall time; median of the samples). `/ embree-2t`, `/ warp`: this row's throughput over the peer's, ratio of the medians and,
 in brackets, the range of the per-round ratios (same round, same noise). `agree`: fraction of rays
 with the reference's hit or miss, primitive and t (within 16 u (t + s) / max(|cos|, 1e-3));
 `agree (ties)` also accepts another primitive at the same t; any hits: the same hit or miss.
@@ -812,6 +873,7 @@ def main(argv: list[str] | None = None) -> dict:
     started = time.perf_counter()
     command = " ".join([".venv/bin/python bench/bench_traverse.py",
                         *(sys.argv[1:] if argv is None else argv)])
+    source = source_state()
     ctx = dev.get_context(args.device)
     peers, peer_status = bb.load_peers(not args.no_peers)
     cameras = bb.load_cameras()
@@ -836,7 +898,7 @@ def main(argv: list[str] | None = None) -> dict:
         "command": command,
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "machine": bb.machine_info(ctx, peer_status),
-        "source": source_state(),
+        "source": {**source, "changed_during_run": source_state() != source},
         "settings": {"scenes": args.scene_names, "width": args.size[0], "height": args.size[1],
                      "repeats": args.repeats, "budget": args.budget, "ao_samples": args.ao_samples,
                      "ao_distance": AO_DISTANCE, "judge": args.judge, "sah": args.sah,
@@ -848,6 +910,9 @@ def main(argv: list[str] | None = None) -> dict:
         "closest_ratios": closest_ratios(rows),
         "targets": targets(rows, [s["name"] for s in scenes]),
         "cpu_use": cpu_use(rows),
+        "other_load": {"median": median_or_none([r["other_load"] for r in rows]),
+                       "max": max((r["other_load"] for r in rows if r["other_load"] is not None),
+                                  default=None)},
     }
     write_outputs(report, out, started)
     return report

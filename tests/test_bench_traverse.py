@@ -63,7 +63,7 @@ def test_quick_json_has_every_field_for_every_query_and_tracer(quick):
             assert {r["tracer"] for r in rows} == expected and len(rows) == len(expected)
     for row in data["rows"]:
         assert set(bench.ROW_FIELDS) <= set(row), set(bench.ROW_FIELDS) - set(row)
-        for name in ("hit_fraction", "agreement", "overflow_count"):
+        for name in ("hit_fraction", "agreement", "overflow_count", "other_load"):
             if row[name] is None:
                 assert row["null_reasons"].get(name), f"{row['tracer']}: {name} null without reason"
         for peer, ratio in row["vs"].items():
@@ -126,6 +126,7 @@ def test_quick_ratios_and_targets(quick):
             assert ratio["ratio"] == pytest.approx(want)
             assert ratio["round_min"] <= ratio["round_max"] and len(ratio["rounds"]) == report["settings"]["repeats"]
     statuses = {(t["peer"], t["status"].split(" (")[0]) for t in report["targets"]}
+    assert all("caveat" in t for t in report["targets"])
     for peer, at_least in bench.TARGETS:
         t = next(t for t in report["targets"] if t["peer"] == peer)
         if (("closest", peer)) in rows:
