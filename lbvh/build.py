@@ -166,4 +166,4 @@ def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl
                          wall_seconds=wall, sort_passes=passes,
                          peak_device_bytes=mem.peak, input_bytes=vertices.nbytes + faces.nbytes)
     return BVH(ctx, vertices, faces, vbuf, fbuf, nodes, parent, prim_order, 2 * n - 1, 0,
-               "lbvh", report)
+               "lbvh", report, pooled=True)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import weakref
 from pathlib import Path
 from typing import Any
 
@@ -40,7 +41,9 @@ class BVH:
                  vertices_buf: cl.Buffer, faces_buf: cl.Buffer, nodes_buf: cl.Buffer,
                  parent_buf: cl.Buffer, prim_order_buf: cl.Buffer, num_nodes: int, root: int,
                  builder: str, report: BuildReport | None = None,
-                 leaf_nodes: np.ndarray | None = None) -> None:
+                 leaf_nodes: np.ndarray | None = None, pooled: bool = False) -> None:
+        """``pooled``: the node, parent and prim_order buffers go back to the
+        context's pool when the tree is dropped (trees built on the device)."""
         self.ctx = ctx
         self.vertices = vertices
         self.faces = faces
@@ -60,6 +63,10 @@ class BVH:
         self._leaf_nodes_buf: cl.Buffer | None = None
         self._pairs = None          # child-pair records of the traversal (lbvh.traverse.pairs_for)
         self._host: dict[str, np.ndarray] = {}
+        if pooled:
+            sizes = (NODE_DTYPE.itemsize * self.num_nodes, 4 * self.num_nodes, 4 * self.num_prims)
+            weakref.finalize(self, ctx.give_back,
+                             list(zip((nodes_buf, parent_buf, prim_order_buf), sizes)))
 
     # -- construction from host arrays (other builders, load) ----------------
     @classmethod

@@ -117,7 +117,10 @@ class Context:
     _programs: dict = field(init=False, default_factory=dict)
     _kernels: dict = field(init=False, default_factory=dict)
     _scratch: dict = field(init=False, default_factory=dict)
-    _lock: threading.Lock = field(init=False, default_factory=threading.Lock)
+    _recycled: dict = field(init=False, default_factory=dict)
+    # Re-entrant: a tree's finalizer (give_back, run by the garbage collector at any
+    # allocation) may fire while this thread is inside the pool.
+    _lock: threading.RLock = field(init=False, default_factory=threading.RLock)
 
     def __post_init__(self) -> None:
         self.ctx = cl.Context([self.device])
@@ -152,19 +155,41 @@ class Context:
     # Fresh device memory is paid for with page faults on first touch: about a
     # quarter of a 1M-triangle build on PoCL. A build's scratch buffers (boxes,
     # keys, counters) go back to this pool and serve the next build of the same
-    # size; trim_scratch() keeps only one build's worth.
+    # size; trim_scratch() keeps only one build's worth. The output buffers
+    # (nodes, parents, primitive order) of the last tree that was dropped are
+    # kept too (give_back) and serve the next build of the same size: a loop
+    # that rebuilds every frame then writes its trees to mapped pages.
+    # trim_scratch() without arguments releases both.
     def take_scratch(self, nbytes: int) -> cl.Buffer | None:
         with self._lock:
-            free = self._scratch.get(nbytes)
-            return free.pop() if free else None
+            for pool in (self._scratch, self._recycled):
+                free = pool.get(nbytes)
+                if free:
+                    return free.pop()
+            return None
 
     def give_scratch(self, buf: cl.Buffer, nbytes: int) -> None:
         with self._lock:
             self._scratch.setdefault(nbytes, []).append(buf)
 
-    def trim_scratch(self, keep: dict[int, int] | None = None) -> None:
-        """Release pooled scratch beyond ``keep`` (bytes -> how many buffers); all without it."""
+    def give_back(self, buffers: Sequence[tuple[cl.Buffer, int]]) -> None:
+        """Keep the buffers ``(buffer, bytes)`` of a tree that was dropped for the
+        next build of the same size (called by the tree's finalizer). Only the
+        last dropped tree's buffers are kept: the ones kept before are released."""
         with self._lock:
+            for bufs in self._recycled.values():
+                for buf in bufs:
+                    buf.release()
+            self._recycled = {}
+            for buf, nbytes in buffers:
+                self._recycled.setdefault(nbytes, []).append(buf)
+
+    def trim_scratch(self, keep: dict[int, int] | None = None) -> None:
+        """Release pooled scratch beyond ``keep`` (bytes -> how many buffers); without
+        it, all of the pool and the buffers kept from dropped trees."""
+        with self._lock:
+            if keep is None:
+                self.give_back([])
             for nbytes, bufs in list(self._scratch.items()):
                 limit = (keep or {}).get(nbytes, 0)
                 while len(bufs) > limit:
@@ -175,7 +200,8 @@ class Context:
     def scratch_bytes(self) -> int:
         """Device bytes held in the scratch pool between builds."""
         with self._lock:
-            return sum(n * len(b) for n, b in self._scratch.items())
+            return sum(n * len(b) for pool in (self._scratch, self._recycled)
+                       for n, b in pool.items())
 
     # -- programs ------------------------------------------------------------
     def program(self, filename: str, defines: dict[str, int | str] | None = None) -> cl.Program:
@@ -296,7 +322,9 @@ class MemoryTracker:
 
     def alloc(self, nbytes: int, scratch: bool = False) -> cl.Buffer:
         nbytes = max(int(nbytes), 4)
-        buf = self.ctx.take_scratch(nbytes) if scratch else None
+        # Any pooled buffer of this size will do, scratch or not: its pages are
+        # already mapped.
+        buf = self.ctx.take_scratch(nbytes)
         if buf is None:
             max_alloc = int(self.ctx.device.max_mem_alloc_size)
             if nbytes > max_alloc:

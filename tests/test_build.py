@@ -1,6 +1,7 @@
 """Whole device builds: valid trees on real and generated scenes, and the API around them."""
 from __future__ import annotations
 
+import gc
 import os
 import subprocess
 import sys
@@ -183,3 +184,28 @@ def test_scratch_pool_holds_one_build_and_is_reused(ctx):
     ctx.trim_scratch()
     assert ctx.scratch_bytes() == 0
     lbvh.build(v, f, key_bits=30).validate()
+
+
+def test_a_dropped_trees_buffers_serve_the_next_build(ctx):
+    """Rebuilding every frame: the last dropped tree's output buffers are reused (no
+    fresh pages), never while the tree lives, and only one dropped tree is kept."""
+    v, f = random_soup(5000, seed=22)
+    ctx.trim_scratch()
+    first = lbvh.build(v, f, key_bits=30)
+    expected, ptr = first.nodes.copy(), first.nodes_buf.int_ptr
+    second = lbvh.build(v, f, key_bits=30)
+    assert second.nodes_buf.int_ptr != ptr            # first is alive: not shared
+    last = second.nodes_buf.int_ptr
+    del first, second                                  # second is the last dropped
+    gc.collect()
+    held = ctx.scratch_bytes()
+    third = lbvh.build(v, f, key_bits=30)
+    assert third.nodes_buf.int_ptr == last
+    assert ctx.scratch_bytes() < held                  # the outputs came from the pool
+    assert np.array_equal(third.nodes, expected)
+    third.validate()
+    del third
+    gc.collect()
+    lbvh.build(*random_soup(300, seed=1)).validate()   # other sizes: fresh buffers
+    ctx.trim_scratch()
+    assert ctx.scratch_bytes() == 0
