@@ -63,10 +63,13 @@ class BVH:
         self._leaf_nodes_buf: cl.Buffer | None = None
         self._pairs = None          # child-pair records of the traversal (lbvh.traverse.pairs_for)
         self._host: dict[str, np.ndarray] = {}
+        # Buffers handed to the context's pool when the tree is dropped: the
+        # build's outputs (``pooled``) and the traversal's pair records.
+        self._pooled: list[tuple[cl.Buffer, int]] = []
         if pooled:
             sizes = (NODE_DTYPE.itemsize * self.num_nodes, 4 * self.num_nodes, 4 * self.num_prims)
-            weakref.finalize(self, ctx.give_back,
-                             list(zip((nodes_buf, parent_buf, prim_order_buf), sizes)))
+            self._pooled += zip((nodes_buf, parent_buf, prim_order_buf), sizes)
+        weakref.finalize(self, _give_back, ctx, self._pooled)
 
     # -- construction from host arrays (other builders, load) ----------------
     @classmethod
@@ -165,6 +168,7 @@ class BVH:
         Returns ``self``.
         """
         from .refit import refit_boxes
+        from .traverse import drop_pairs
 
         v = as_vertices(vertices)
         if v.shape != self.vertices.shape:
@@ -174,7 +178,7 @@ class BVH:
                     self.parent_buf, self.num_prims, self.num_nodes, self._leaf_nodes_device())
         self.vertices_buf, self.vertices = new_buf, v
         self._host.clear()
-        self._pairs = None   # the traversal's copies of the boxes are stale
+        drop_pairs(self)   # the traversal's copies of the boxes are stale
         return self
 
     def leaf_walks(self) -> tuple[cl.Buffer | None, int, int]:
@@ -218,6 +222,11 @@ class BVH:
     def __repr__(self) -> str:
         return (f"<lbvh.BVH {self.builder}: {self.num_prims} triangles, {self.num_nodes} nodes "
                 f"on {self.ctx.name}>")
+
+
+def _give_back(ctx: dev.Context, buffers: list[tuple[cl.Buffer, int]]) -> None:
+    if buffers:
+        ctx.give_back(buffers)
 
 
 def load(path: str | os.PathLike, device: Any = None) -> BVH:

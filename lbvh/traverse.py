@@ -394,7 +394,8 @@ def pairs_for(bvh: Any, max_bytes: int | None = None) -> Pairs:
     packed = records * PAIR_BYTES <= max_bytes
     rank = internal_rank(bvh.num_nodes, leaf_nodes)
     if packed:
-        buffer = dev.empty(ctx, records * PAIR_BYTES)
+        nbytes = records * PAIR_BYTES
+        buffer = ctx.take_scratch(nbytes) or dev.empty(ctx, nbytes)
         rank_buf = dev.to_device(ctx, rank if rank is not None else np.zeros(1, np.int32))
         bad = dev.to_device(ctx, np.int32([_NO_BAD_NODE]))
         launch = ctx.launch(bvh.num_nodes, min_per_item=4096, gpu_per_item=1)
@@ -405,14 +406,28 @@ def pairs_for(bvh: Any, max_bytes: int | None = None) -> Pairs:
         rank_buf.release()
         bad.release()
         if bad_node != _NO_BAD_NODE:
-            buffer.release()
+            ctx.give_scratch(buffer, nbytes)
             raise ValueError(f"tree: node {bad_node} has a child index outside "
                              f"[0, {bvh.num_nodes}); the tree cannot be traversed")
+        bvh._pooled.append((buffer, nbytes))   # back to the pool with the tree
     else:
         buffer = bvh.nodes_buf
     pairs = Pairs(buffer, packed, *_root_reference(bvh, rank, packed))
     bvh._pairs = pairs
     return pairs
+
+
+def drop_pairs(bvh: Any) -> None:
+    """Forget the tree's pair records (after a refit); their buffer goes to the
+    context's pool, where the next :func:`pairs_for` finds it."""
+    pairs, bvh._pairs = bvh._pairs, None
+    if pairs is None or not pairs.packed:
+        return
+    for k, (buf, nbytes) in enumerate(bvh._pooled):
+        if buf is pairs.buffer:
+            del bvh._pooled[k]
+            bvh.ctx.give_scratch(buf, nbytes)
+            return
 
 
 # -- device-level entry -----------------------------------------------------------

@@ -655,9 +655,11 @@ def test_refit_drops_the_pair_records():
     o, d = ray_set("suzanne")
     bvh = lbvh.build(v, f)
     before = bvh.intersect(o, d)
+    records = tr.pairs_for(bvh).buffer.int_ptr
     shift = np.float32([0.0, 0.0, 0.5])
     bvh.refit(v + shift)
     moved = bvh.intersect(o, d)
+    assert tr.pairs_for(bvh).buffer.int_ptr == records      # repacked into the same buffer
     fresh = lbvh.build(v + shift, f).intersect(o, d)
     assert (moved.prim == fresh.prim).all() and (moved.t == fresh.t).all()
     assert not (moved.t[before.hit] == before.t[before.hit]).all()
