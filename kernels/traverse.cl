@@ -366,14 +366,29 @@ inline int2 child_ref(__global const int *words, int x, int k) {
 #endif
 }
 
+/* The faces in slot order, slot_faces[s] = faces[prim_order[s]]: a leaf's
+ * triangles are then read without going through prim_order (one dependent
+ * load less per triangle); prim_order maps only the closest hit back. */
+__kernel void order_faces(__global const uint *faces, __global const int *prim_order,
+                          const int num_prims, const int per_item, __global uint *slot_faces) {
+    const int gid = get_global_id(0);
+    const int last = chunk_last(gid, per_item, num_prims);
+    for (int s = chunk_first(gid, per_item, num_prims); s < last; ++s) {
+        const int t = prim_order[s];
+        slot_faces[3 * s] = faces[3 * t];
+        slot_faces[3 * s + 1] = faces[3 * t + 1];
+        slot_faces[3 * s + 2] = faces[3 * t + 2];
+    }
+}
+
 /* Rays origins[3i..], directions[3i..], tmin[i * interval_stride],
  * tmax[i * interval_stride]. The root's box is tested from its node; the root
  * enters the loop as the reference (root_x, root_y), in the encoding of the
  * pair records (see pack_pairs); `pairs` is the node array itself with
- * PAIRS=0. */
+ * PAIRS=0. Triangles come from slot_faces (see order_faces). */
 __kernel void traverse(__global const float4 *nodes, __global const float4 *pairs,
                        __global const int *prim_order,
-                       __global const float *vertices, __global const uint *faces,
+                       __global const float *vertices, __global const uint *slot_faces,
                        const int root, const int root_x, const int root_y, const int num_nodes,
                        __global const float *origins, __global const float *directions,
                        __global const float *tmins, __global const float *tmaxs,
@@ -404,10 +419,9 @@ __kernel void traverse(__global const float4 *nodes, __global const float4 *pair
             int have_next = 0, next_x = 0, next_y = 0;
             if (node_is_leaf(y)) {
                 for (int s = x; s < x - y; ++s) {
-                    const int prim = prim_order[s];
                     ++tested;
-                    if (hit_triangle(vertices, 3 * (int)faces[3 * prim], 3 * (int)faces[3 * prim + 1],
-                                     3 * (int)faces[3 * prim + 2], &ray, &best, &bu, &bv)) {
+                    if (hit_triangle(vertices, 3 * (int)slot_faces[3 * s], 3 * (int)slot_faces[3 * s + 1],
+                                     3 * (int)slot_faces[3 * s + 2], &ray, &best, &bu, &bv)) {
                         best_slot = s;
 #if ANY_HIT
                         break;

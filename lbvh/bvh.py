@@ -62,6 +62,7 @@ class BVH:
         self._leaf_nodes = leaf_nodes
         self._leaf_nodes_buf: cl.Buffer | None = None
         self._pairs = None          # child-pair records of the traversal (lbvh.traverse.pairs_for)
+        self._slot_faces = None     # faces in slot order, for the traversal (slot_faces_for)
         self._host: dict[str, np.ndarray] = {}
         # Buffers handed to the context's pool when the tree is dropped: the
         # build's outputs (``pooled``) and the traversal's pair records.

@@ -32,9 +32,12 @@ Pair records
     64-byte record per internal node holding both children's boxes, packed on
     the device from any tree of the layout on its first query and cached on the
     tree (a refit drops them). A visit then reads one record instead of three
-    nodes: about 1.3-1.5x the rays per second on the shared scenes. They cost
+    nodes: 1.1-1.5x the rays per second on the bunny and Sponza. They cost
     64 bytes per internal node of device memory; a tree whose records would
     exceed the device's largest buffer is traversed through its own nodes.
+    Likewise the faces are copied once in slot order (:func:`slot_faces_for`,
+    12 bytes per triangle), so that a leaf's triangles are read without a
+    detour through ``prim_order``.
 """
 from __future__ import annotations
 
@@ -417,6 +420,25 @@ def pairs_for(bvh: Any, max_bytes: int | None = None) -> Pairs:
     return pairs
 
 
+def slot_faces_for(bvh: Any) -> cl.Buffer:
+    """``uint32 (F, 3)`` on the device: ``faces[prim_order]``, the triangles in slot
+    order as the kernel reads them (kernels/traverse.cl, order_faces), made on
+    first use and cached on the tree (a refit keeps faces and order)."""
+    cached = getattr(bvh, "_slot_faces", None)
+    if cached is not None:
+        return cached
+    ctx = bvh.ctx
+    nbytes = 12 * bvh.num_prims
+    out = ctx.take_scratch(nbytes) or dev.empty(ctx, nbytes)
+    launch = ctx.launch(bvh.num_prims, min_per_item=4096, gpu_per_item=1)
+    ctx.kernel(KERNEL_FILE, "order_faces", {})(
+        ctx.queue, (launch.global_size,), launch.local, bvh.faces_buf, bvh.prim_order_buf,
+        np.int32(bvh.num_prims), np.int32(launch.per_item), out)
+    bvh._pooled.append((out, nbytes))   # back to the pool with the tree
+    bvh._slot_faces = out
+    return out
+
+
 def drop_pairs(bvh: Any) -> None:
     """Forget the tree's pair records (after a refit); their buffer goes to the
     context's pool, where the next :func:`pairs_for` finds it."""
@@ -462,7 +484,7 @@ def trace_buffers(bvh: Any, rays: DeviceRays, *, any_hit: bool = False,
         counter_buf = dev.empty(ctx, 8 * count)
     per_item, global_size, local = _launch(count)
     ev = knl(ctx.queue, (global_size,), local, bvh.nodes_buf, pairs.buffer, bvh.prim_order_buf,
-             bvh.vertices_buf, bvh.faces_buf, np.int32(bvh.root), np.int32(pairs.root_x),
+             bvh.vertices_buf, slot_faces_for(bvh), np.int32(bvh.root), np.int32(pairs.root_x),
              np.int32(pairs.root_y), np.int32(bvh.num_nodes), rays.origins, rays.directions,
              rays.tmin, rays.tmax, np.int32(rays.interval_stride), hits, flags,
              counter_buf if counters else flags, np.int32(count), np.int32(per_item),

@@ -633,6 +633,14 @@ def test_pair_records_equal_their_numpy_twin(kind):
         assert pairs.root_x == (bvh.root if rank is None else rank[bvh.root])
 
 
+@pytest.mark.parametrize("kind", ["lbvh30", "lbvh_collapse", "sah"])
+def test_faces_in_slot_order_equal_their_numpy_twin(kind):
+    bvh = tree("teapot", kind)
+    got = np.empty((bvh.num_prims, 3), np.uint32)
+    cl.enqueue_copy(bvh.ctx.queue, got, tr.slot_faces_for(bvh), is_blocking=True)
+    assert np.array_equal(got, bvh.faces[bvh.prim_order])
+
+
 def test_traversal_through_the_nodes_equals_the_pair_records():
     """The fallback for trees whose records exceed the largest device buffer (PAIRS=0)
     gives the same hits, bit for bit, and the same counters."""
