@@ -56,7 +56,7 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import pyopencl as cl
@@ -856,34 +856,62 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def add_scene_options(p: argparse.ArgumentParser, quick_scenes: Sequence[str],
+                      full_scenes: Sequence[str], quick_rays: tuple[int, int],
+                      full_rays: tuple[int, int]) -> None:
+    """--quick, --scenes and --rays, shared by the bench scripts that trace camera rays."""
+    p.add_argument("--quick", action="store_true",
+                   help=f"CI mode: {', '.join(quick_scenes)} at {quick_rays[0]}x{quick_rays[1]} rays")
+    p.add_argument("--scenes", nargs="+", metavar="NAME",
+                   help=f"scenes (comma or space separated) from: {', '.join(known_scenes())}; "
+                        f"default {','.join(full_scenes)}")
+    p.add_argument("--rays", type=parse_size, help="primary rays WIDTHxHEIGHT per scene "
+                   f"(default {full_rays[0]}x{full_rays[1]}, quick {quick_rays[0]}x{quick_rays[1]})")
+
+
+def add_run_options(p: argparse.ArgumentParser) -> None:
+    """--no-peers, --device, --shared and --out, shared by the bench scripts."""
+    p.add_argument("--no-peers", action="store_true", help="skip Embree and warp")
+    p.add_argument("--device", default=None, help="OpenCL device (default: $LBVH_DEVICE or PoCL)")
+    p.add_argument("--shared", type=Path, default=SHARED_SCENES, help="folder of the shared scenes")
+    p.add_argument("--out", type=Path, default=HERE / "out", help="output folder (default bench/out)")
+
+
+def resolve_scenes(p: argparse.ArgumentParser, args: argparse.Namespace,
+                   quick_scenes: Sequence[str], full_scenes: Sequence[str],
+                   quick_rays: tuple[int, int], full_rays: tuple[int, int]) -> None:
+    """Set ``args.scene_names`` and ``args.size`` from --scenes, --rays and --quick."""
+    names = [n for item in (args.scenes or []) for n in item.split(",") if n]
+    unknown = [n for n in names if n not in known_scenes()]
+    if unknown:
+        p.error(f"--scenes: unknown scene {unknown[0]!r}; known: {', '.join(known_scenes())}")
+    args.scene_names = names or list(quick_scenes if args.quick else full_scenes)
+    args.size = args.rays or (quick_rays if args.quick else full_rays)
+
+
+def write_report(report: dict, text: str, paths: dict[str, Path], out: Path) -> None:
+    """The Markdown ``text`` and the JSON ``report`` to ``paths``, the text to stdout."""
+    paths["markdown"].write_text(text)
+    paths["json"].write_text(json.dumps(report, indent=1, allow_nan=False) + "\n")
+    print(text)
+    print(f"[bench] written to {out}", file=sys.stderr)
+
+
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--quick", action="store_true",
-                   help=f"CI mode: {', '.join(QUICK_SCENES)} at {QUICK_RAYS[0]}x{QUICK_RAYS[1]} rays")
-    p.add_argument("--scenes", nargs="+", metavar="NAME",
-                   help=f"scenes (comma or space separated) from: {', '.join(known_scenes())}; "
-                        f"default {','.join(FULL_SCENES)}")
-    p.add_argument("--rays", type=parse_size, help="primary rays WIDTHxHEIGHT per scene "
-                   f"(default {FULL_RAYS[0]}x{FULL_RAYS[1]}, quick {QUICK_RAYS[0]}x{QUICK_RAYS[1]})")
+    scene_options = (QUICK_SCENES, FULL_SCENES, QUICK_RAYS, FULL_RAYS)
+    add_scene_options(p, *scene_options)
     p.add_argument("--repeats", type=int, default=3, help="builds and renders per builder (median)")
     p.add_argument("--build-budget", type=float, default=20.0,
                    help="stop repeating a builder's builds after this many seconds (default 20)")
     p.add_argument("--chart-rays", type=int, default=CHART_RAYS,
                    help="ray count of the chart's build + render axis (default 1e7)")
-    p.add_argument("--no-peers", action="store_true", help="skip Embree and warp")
-    p.add_argument("--device", default=None, help="OpenCL device (default: $LBVH_DEVICE or PoCL)")
-    p.add_argument("--shared", type=Path, default=SHARED_SCENES, help="folder of the shared scenes")
-    p.add_argument("--out", type=Path, default=HERE / "out", help="output folder (default bench/out)")
+    add_run_options(p)
     args = p.parse_args(argv)
     if args.repeats < 1:
         p.error("--repeats: at least 1")
-    names = [n for item in (args.scenes or []) for n in item.split(",") if n]
-    unknown = [n for n in names if n not in known_scenes()]
-    if unknown:
-        p.error(f"--scenes: unknown scene {unknown[0]!r}; known: {', '.join(known_scenes())}")
-    args.scene_names = names or list(QUICK_SCENES if args.quick else FULL_SCENES)
-    args.size = args.rays or (QUICK_RAYS if args.quick else FULL_RAYS)
+    resolve_scenes(p, args, *scene_options)
     return args
 
 
@@ -945,11 +973,7 @@ def write_outputs(report: dict, out: Path, started: float) -> None:
     report["outputs"] = {k: str(p) for k, p in paths.items() if k != "chart" or no_chart is None}
     report["chart_missing"] = no_chart
     report["duration_seconds"] = time.perf_counter() - started
-    text = markdown(report)
-    paths["markdown"].write_text(text)
-    paths["json"].write_text(json.dumps(report, indent=1, allow_nan=False) + "\n")
-    print(text)
-    print(f"[bench] written to {out}", file=sys.stderr)
+    write_report(report, markdown(report), paths, out)
 
 
 if __name__ == "__main__":

@@ -58,7 +58,6 @@ import argparse
 import contextlib
 import datetime
 import importlib
-import json
 import os
 import statistics
 import subprocess
@@ -811,13 +810,8 @@ got right or wrong. `overflow`: our rays whose traversal stack overflowed."""
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--quick", action="store_true",
-                   help=f"CI mode: {', '.join(QUICK_SCENES)} at {QUICK_RAYS[0]}x{QUICK_RAYS[1]} rays")
-    p.add_argument("--scenes", nargs="+", metavar="NAME",
-                   help=f"scenes (comma or space separated) from: {', '.join(bb.known_scenes())}; "
-                        f"default {','.join(FULL_SCENES)}")
-    p.add_argument("--rays", type=bb.parse_size, help="primary rays WIDTHxHEIGHT per scene "
-                   f"(default {FULL_RAYS[0]}x{FULL_RAYS[1]}, quick {QUICK_RAYS[0]}x{QUICK_RAYS[1]})")
+    scene_options = (QUICK_SCENES, FULL_SCENES, QUICK_RAYS, FULL_RAYS)
+    bb.add_scene_options(p, *scene_options)
     p.add_argument("--repeats", type=int, default=3, help="rounds per ray set (median)")
     p.add_argument("--budget", type=float, default=60.0,
                    help="a tracer stops repeating a ray set after this many seconds (default 60)")
@@ -826,23 +820,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="rays judged against the float64 oracle per ray set, at most (default 200)")
     p.add_argument("--sah", action="store_true",
                    help=f"also the serial SAH tree, on scenes up to {SAH_MAX_TRIANGLES:,} triangles")
-    p.add_argument("--no-peers", action="store_true", help="skip Embree and warp")
-    p.add_argument("--device", default=None, help="OpenCL device (default: $LBVH_DEVICE or PoCL)")
-    p.add_argument("--shared", type=Path, default=bb.SHARED_SCENES, help="folder of the shared scenes")
     p.add_argument("--views", type=Path, default=None, help="also write what each camera sees here")
-    p.add_argument("--out", type=Path, default=HERE / "out", help="output folder (default bench/out)")
+    bb.add_run_options(p)
     args = p.parse_args(argv)
     for name in ("repeats", "ao_samples"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')}: at least 1")
     if args.judge < 0:
         p.error("--judge: at least 0")
-    names = [n for item in (args.scenes or []) for n in item.split(",") if n]
-    unknown = [n for n in names if n not in bb.known_scenes()]
-    if unknown:
-        p.error(f"--scenes: unknown scene {unknown[0]!r}; known: {', '.join(bb.known_scenes())}")
-    args.scene_names = names or list(QUICK_SCENES if args.quick else FULL_SCENES)
-    args.size = args.rays or (QUICK_RAYS if args.quick else FULL_RAYS)
+    bb.resolve_scenes(p, args, *scene_options)
     return args
 
 
@@ -922,11 +908,7 @@ def write_outputs(report: dict, out: Path, started: float) -> None:
     report["duration_seconds"] = time.perf_counter() - started
     paths = {"json": out / "bench_traverse.json", "markdown": out / "bench_traverse.md"}
     report["outputs"] = {k: str(p) for k, p in paths.items()}
-    text = markdown(report)
-    paths["markdown"].write_text(text)
-    paths["json"].write_text(json.dumps(report, indent=1, allow_nan=False) + "\n")
-    print(text)
-    print(f"[bench] written to {out}", file=sys.stderr)
+    bb.write_report(report, markdown(report), paths, out)
 
 
 if __name__ == "__main__":
