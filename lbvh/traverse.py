@@ -149,6 +149,14 @@ class Rays:
         n = len(self)
         return np.broadcast_to(self.tmin, (n,)), np.broadcast_to(self.tmax, (n,))
 
+    def kernel_intervals(self) -> tuple[np.ndarray, np.ndarray, int]:
+        """``(tmin, tmax, stride)`` as the kernel reads them: C-contiguous ``(N,)``
+        arrays with stride 1 when either varies per ray, else one value each, stride 0."""
+        if self.tmin.ndim == 1 or self.tmax.ndim == 1:
+            lo, hi = self.intervals()
+            return np.ascontiguousarray(lo), np.ascontiguousarray(hi), 1
+        return self.tmin.reshape(1), self.tmax.reshape(1), 0
+
 
 def _first_bad(mask: np.ndarray) -> int:
     return int(np.flatnonzero(mask)[0])
@@ -264,11 +272,9 @@ class DeviceRays:
 def upload_rays(ctx: dev.Context, rays: Rays) -> DeviceRays:
     """Copy rays to new device buffers (no checks beyond :func:`check_rays`' types:
     the caller decides what it uploads)."""
-    per_ray = rays.tmin.ndim == 1 or rays.tmax.ndim == 1
-    lo, hi = rays.intervals() if per_ray else (rays.tmin, rays.tmax)
+    lo, hi, stride = rays.kernel_intervals()
     return DeviceRays(len(rays), dev.to_device(ctx, rays.origins), dev.to_device(ctx, rays.directions),
-                      dev.to_device(ctx, np.ascontiguousarray(lo, np.float32)),
-                      dev.to_device(ctx, np.ascontiguousarray(hi, np.float32)), int(per_ray))
+                      dev.to_device(ctx, lo), dev.to_device(ctx, hi), stride)
 
 
 # -- programs -------------------------------------------------------------------
@@ -514,9 +520,8 @@ def _trace(bvh: Any, origins: Any, directions: Any, tmin: Any, tmax: Any, any_hi
     count = np.zeros((n, 2), np.int32) if counters else None
     ctx, queue = bvh.ctx, bvh.ctx.queue
     batch = int(min(batch_size, max(n, 1)))
-    per_ray = rays.tmin.ndim == 1 or rays.tmax.ndim == 1
-    lo, hi = rays.intervals() if per_ray else (rays.tmin, rays.tmax)
-    lo, hi = np.ascontiguousarray(lo), np.ascontiguousarray(hi)
+    lo, hi, stride = rays.kernel_intervals()
+    per_ray = stride == 1
     ro = cl.mem_flags.READ_ONLY
     bufs = {"o": dev.empty(ctx, 12 * batch, ro), "d": dev.empty(ctx, 12 * batch, ro),
             "lo": dev.empty(ctx, 4 * (batch if per_ray else 1), ro),
@@ -536,7 +541,7 @@ def _trace(bvh: Any, origins: Any, directions: Any, tmin: Any, tmax: Any, any_hi
             if per_ray:
                 ups += [cl.enqueue_copy(queue, bufs["lo"], lo[start:stop], is_blocking=False),
                         cl.enqueue_copy(queue, bufs["hi"], hi[start:stop], is_blocking=False)]
-            device_rays = DeviceRays(m, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"], int(per_ray))
+            device_rays = DeviceRays(m, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"], stride)
             result = trace_buffers(bvh, device_rays, any_hit=any_hit, triangle_test=triangle_test,
                                    counters=counters, stack_size=stack_size, hits=bufs["hits"],
                                    flags=bufs["flags"], counter_buf=bufs.get("count"), wait_for=ups)
