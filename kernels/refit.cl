@@ -40,8 +40,11 @@ __kernel void refit(__global const float4 *boxes /* lo, hi per triangle (bounds.
     const int last = chunk_last(gid, per_item, num_leaves);
     __global float *node_floats = (__global float *)nodes;
     __global const int *node_words = (__global const int *)nodes;
+    /* Leaf boxes first, for the whole chunk: the gathers are independent of
+     * each other, so the core overlaps their cache misses; in the walks below,
+     * every atomic is a full barrier that would stall each gather in turn. */
     for (int k = first; k < last; ++k) {
-        int node = use_leaf_list ? leaf_nodes[k] : leaf_first + k;
+        const int node = use_leaf_list ? leaf_nodes[k] : leaf_first + k;
         const int slot = node_words[8 * node + 3];
         const int count = -node_words[8 * node + 7];
         const int t0 = prim_order[slot];
@@ -52,6 +55,11 @@ __kernel void refit(__global const float4 *boxes /* lo, hi per triangle (bounds.
             hi = max3(hi, boxes[2 * t + 1].xyz);
         }
         store_box(node_floats, node, lo, hi);
+    }
+    for (int k = first; k < last; ++k) {
+        int node = use_leaf_list ? leaf_nodes[k] : leaf_first + k;
+        float3 lo, hi;
+        load_box_volatile(node_floats, node, &lo, &hi);
         for (;;) {
             const int p = parent[node];
             if (p < 0 || !second_arrival(arrivals, p)) break;
