@@ -47,22 +47,6 @@ inline subtree_t load_stats_volatile(volatile __global int *stats_words, int nod
     return s;
 }
 
-/* 2^-e for the exponent e of the largest |coordinate| of the box, e clamped
- * to [-126, 126] so the factor is a normal float (built from its bits). */
-inline float box_scale(float3 lo, float3 hi) {
-    float3 m3 = fmax(fabs(lo), fabs(hi));
-    float m = fmax(fmax(m3.x, m3.y), m3.z);
-    int e = ((as_int(m) >> 23) & 0xff) - 126;
-    e = clamp(e, -126, 126);
-    return as_float((127 - e) << 23);
-}
-
-/* Half the surface area of a box with its coordinates scaled by s. */
-inline float scaled_half_area(float3 lo, float3 hi, float s) {
-    float3 d = hi * s - lo * s;
-    return d.x * d.y + d.y * d.z + d.z * d.x;
-}
-
 inline void node_box(__global const float4 *nodes, int node, float3 *lo, float3 *hi) {
     *lo = nodes[2 * node].xyz;
     *hi = nodes[2 * node + 1].xyz;

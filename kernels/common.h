@@ -74,4 +74,22 @@ inline void triangle_box(__global const float *vertices, __global const uint *fa
 /* Halves first so that boxes near the float32 limit do not overflow. */
 inline float3 box_centre(float3 lo, float3 hi) { return lo * 0.5f + hi * 0.5f; }
 
+/* Surface areas for the SAH without overflow or underflow: boxes scaled by
+ * 2^-e, e the exponent of the largest |coordinate| of a reference box,
+ * clamped to [-126, 126] so the factor is a normal float (built from its
+ * bits). Scaling by a power of two is exact. */
+inline float box_scale(float3 lo, float3 hi) {
+    float3 m3 = fmax(fabs(lo), fabs(hi));
+    float m = fmax(fmax(m3.x, m3.y), m3.z);
+    int e = ((as_int(m) >> 23) & 0xff) - 126;
+    e = clamp(e, -126, 126);
+    return as_float((127 - e) << 23);
+}
+
+/* Half the surface area of a box with its coordinates scaled by s. */
+inline float scaled_half_area(float3 lo, float3 hi, float s) {
+    float3 d = hi * s - lo * s;
+    return d.x * d.y + d.y * d.z + d.z * d.x;
+}
+
 #endif

@@ -21,6 +21,7 @@ from .geometry import as_mesh
 from .morton import AUTO_DUPLICATE_FRACTION, choose_key_bits, count_duplicates, morton_codes
 from .refit import refit_from_boxes
 from .report import PHASES, BuildReport
+from .restructure import check_rounds, restructure_treelets
 from .sort import radix_sort
 
 KEY_CHOICES = {"auto": None, 30: 32, 63: 64, "30": 32, "63": 64}
@@ -38,8 +39,8 @@ BUILDERS = ("lbvh", "sah")
 
 def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh",
           key_bits: int | str = "auto", device: Any = None,
-          auto_duplicate_fraction: float = AUTO_DUPLICATE_FRACTION, collapse: bool = False,
-          **options: Any) -> BVH:
+          auto_duplicate_fraction: float = AUTO_DUPLICATE_FRACTION, treelet_rounds: int = 0,
+          collapse: bool = False, **options: Any) -> BVH:
     """Build a BVH over a triangle mesh: the device LBVH, or the serial SAH reference.
 
     Args:
@@ -52,6 +53,10 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh",
             are duplicates.
         device: a device name (see :mod:`lbvh.device`), a ``pyopencl.Device``, or
             ``None`` for ``$LBVH_DEVICE`` / PoCL's CPU device.
+        treelet_rounds: ``"lbvh"`` only: rounds of treelet restructuring after the
+            refit (:mod:`lbvh.restructure`, Karras & Aila 2013): a tree of lower SAH
+            cost, hence faster rays, for a longer build; 0 (the default) keeps the
+            Karras 2012 tree.
         collapse: ``"lbvh"`` only: after the build, merge subtrees into leaves where the
             SAH says testing their triangles is cheaper (:func:`lbvh.collapse.collapse_leaves`,
             ``options``: ``c_node``, ``c_tri``, ``max_leaf_size``).
@@ -67,8 +72,12 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh",
     if builder not in BUILDERS:
         raise ValueError(f"builder: {builder!r}; expected one of {', '.join(BUILDERS)}")
     wanted = _key_bits_of(key_bits)
+    rounds = check_rounds(treelet_rounds)
     v, f = as_mesh(vertices, faces)
     if builder == "sah":
+        if rounds:
+            raise ValueError("treelet_rounds: only for builder='lbvh' (the SAH builder's tree "
+                             "is the reference)")
         if collapse:
             raise ValueError("collapse: only for builder='lbvh' (the SAH builder already makes "
                              "multi-triangle leaves)")
@@ -84,7 +93,7 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh",
     vbuf, fbuf = dev.to_device(ctx, v), dev.to_device(ctx, f)
     ctx.queue.finish()
     upload = time.perf_counter() - t0
-    bvh = build_on_device(ctx, v, f, vbuf, fbuf, wanted, auto_duplicate_fraction)
+    bvh = build_on_device(ctx, v, f, vbuf, fbuf, wanted, auto_duplicate_fraction, rounds)
     bvh.build_report.upload_seconds = upload
     if collapse:
         from .collapse import collapse_leaves
@@ -114,8 +123,8 @@ def _check_collapse_options(c_node: float = 1.0, c_tri: float = 1.0, max_leaf_si
 
 
 def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl.Buffer,
-                    key_bits: int | None, auto_duplicate_fraction: float = AUTO_DUPLICATE_FRACTION
-                    ) -> BVH:
+                    key_bits: int | None, auto_duplicate_fraction: float = AUTO_DUPLICATE_FRACTION,
+                    treelet_rounds: int = 0) -> BVH:
     """Build from a mesh already on the device (host copies kept for validation and views)."""
     n = len(faces)
     mem = dev.MemoryTracker(ctx)
@@ -154,16 +163,23 @@ def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl
 
     arrivals = mem.alloc(4 * (2 * n - 1), scratch=True)
     events["refit"] += refit_from_boxes(ctx, boxes, prim_order, nodes, parent, arrivals, n, 2 * n - 1)
+    mem.free(boxes)
+    if treelet_rounds:
+        cost = mem.alloc(4 * (2 * n - 1), scratch=True)
+        events["restructure"] = restructure_treelets(
+            ctx, nodes, parent, cost, arrivals, 2 * n - 1, 0, treelet_rounds, n - 1, n)
+        mem.free(cost)
     ctx.queue.finish()
     wall = time.perf_counter() - t0
-    mem.free(arrivals, boxes)
+    mem.free(arrivals)
     mem.close()
 
     phase_seconds = {phase: dev.event_seconds(evs) for phase, evs in events.items()}
-    report = BuildReport(device=ctx.name, builder="lbvh", num_triangles=n, key_bits=bits,
+    builder = f"lbvh+treelets{treelet_rounds}" if treelet_rounds else "lbvh"
+    report = BuildReport(device=ctx.name, builder=builder, num_triangles=n, key_bits=bits,
                          key_choice=choice, duplicate_codes=duplicates,
                          phase_seconds=phase_seconds, device_seconds=sum(phase_seconds.values()),
                          wall_seconds=wall, sort_passes=passes,
                          peak_device_bytes=mem.peak, input_bytes=vertices.nbytes + faces.nbytes)
     return BVH(ctx, vertices, faces, vbuf, fbuf, nodes, parent, prim_order, 2 * n - 1, 0,
-               "lbvh", report, pooled=True)
+               builder, report, pooled=True)

@@ -1,0 +1,191 @@
+/* Treelet restructuring: Karras & Aila 2013, "Fast Parallel Construction of
+ * High-Quality Bounding Volume Hierarchies" (HPG), sections 3 and 4.
+ *
+ * One round is a bottom-up walk with the second-arrival scheme of refit.cl
+ * (Karras 2012, section 4). When a walk is the second to reach node R, every
+ * node below R is final, so R's treelet can be rebuilt:
+ *   - formation (section 4.1): start from R's two children as treelet leaves
+ *     and, while there are fewer than TREELET_LEAVES, expand the treelet leaf
+ *     of largest surface area that is an internal node of the BVH (it is
+ *     replaced by its left child in place, its right child is appended);
+ *   - optimal topology (section 4.2, Algorithm 2): dynamic programming over
+ *     the subsets S of the treelet leaves, in increasing order of the bit mask
+ *     (every proper subset of S comes before S):
+ *         C(S) = C_NODE * A(S) + min over partitions {P, S\P} of C(P) + C(S\P)
+ *     a singleton's C being the SAH cost already known for that subtree;
+ *   - the treelet's internal nodes (R first, then the expanded nodes in
+ *     expansion order) are reused for the optimal topology, depth first.
+ * Leaves are never touched: slots, prim_order and the leaf block stay.
+ *
+ * Costs are the unnormalised SAH, C(n) = C_NODE * A(n) + C(l) + C(r) and
+ * C(leaf) = C_TRI * count * A(leaf), with A the half area of the box scaled by
+ * box_scale() of the root's box, so that no area overflows or underflows in
+ * float32 for any finite scene. A treelet that cannot grow past two leaves
+ * has one topology; the same code then only computes its cost.
+ *
+ * Determinism: R's result depends only on R's subtree, and ties go to the
+ * first candidate in a fixed order (largest area: lowest position; partition:
+ * first in the enumeration below), so the tree does not depend on which walk
+ * arrives second; lbvh/restructure.py has the serial twin, which matches bit
+ * for bit (FP_CONTRACT OFF, same order of operations).
+ *
+ * Memory ordering as refit.cl: second_arrival() fences, and every read of a
+ * node or cost written by another walk goes through a volatile pointer.
+ *
+ * TREELET_LEAVES (define): at most 7 here; Karras & Aila use 7.
+ */
+#include "common.h"
+
+#define SUBSETS (1 << TREELET_LEAVES)
+
+typedef volatile __global float vfloat_t;
+typedef volatile __global int vint_t;
+
+inline void read_box(vfloat_t *node_floats, int node, float3 *lo, float3 *hi) {
+    vfloat_t *p = node_floats + 8 * node;
+    *lo = (float3)(p[0], p[1], p[2]);
+    *hi = (float3)(p[4], p[5], p[6]);
+}
+
+inline int child_word(vint_t *node_words, int node, int which) {
+    return node_words[8 * node + (which ? 7 : 3)];
+}
+
+inline void write_node(__global float *node_floats, int node, float3 lo, float3 hi, int a, int b) {
+    __global float *p = node_floats + 8 * node;
+    store_float3(p, lo);
+    store_float3(p + 4, hi);
+    ((__global int *)p)[3] = a;
+    ((__global int *)p)[7] = b;
+}
+
+/* Index of the single set bit of a power of two (OpenCL 1.2 has no ctz). */
+inline int bit_index(int single_bit) { return 31 - (int)clz((uint)single_bit); }
+
+/* Rebuild the treelet rooted at internal node `root`; its cost is written
+ * with the others. */
+inline void restructure_at(int root, __global float *node_floats, vfloat_t *vnode_floats,
+                           vint_t *node_words, __global int *parent, __global float *cost,
+                           vfloat_t *vcost, float scale, float c_node) {
+    int leaf[TREELET_LEAVES];
+    float leaf_area[TREELET_LEAVES];
+    int inner[TREELET_LEAVES - 1];
+    int num_leaves = 2, num_inner = 1;
+    inner[0] = root;
+    for (int c = 0; c < 2; ++c) {
+        float3 lo, hi;
+        leaf[c] = child_word(node_words, root, c);
+        read_box(vnode_floats, leaf[c], &lo, &hi);
+        leaf_area[c] = scaled_half_area(lo, hi, scale);
+    }
+    /* Formation (section 4.1). */
+    while (num_leaves < TREELET_LEAVES) {
+        int grow = -1;
+        float grow_area = 0.0f;
+        for (int i = 0; i < num_leaves; ++i) {
+            const int internal = !node_is_leaf(child_word(node_words, leaf[i], 1));
+            if (internal && (grow < 0 || leaf_area[i] > grow_area)) {
+                grow = i;
+                grow_area = leaf_area[i];
+            }
+        }
+        if (grow < 0) break;
+        const int x = leaf[grow];
+        inner[num_inner++] = x;
+        const int at[2] = {grow, num_leaves++};
+        for (int c = 0; c < 2; ++c) {
+            float3 lo, hi;
+            leaf[at[c]] = child_word(node_words, x, c);
+            read_box(vnode_floats, leaf[at[c]], &lo, &hi);
+            leaf_area[at[c]] = scaled_half_area(lo, hi, scale);
+        }
+    }
+    /* Optimal topology (section 4.2): boxes, areas and costs of every subset. */
+    float3 sub_lo[SUBSETS], sub_hi[SUBSETS];
+    float sub_cost[SUBSETS];
+    int sub_split[SUBSETS];
+    const int full = (1 << num_leaves) - 1;
+    for (int s = 1; s <= full; ++s) {
+        const int low = s & -s;
+        const int rest = s ^ low;
+        if (rest == 0) {
+            const int node = leaf[bit_index(low)];
+            read_box(vnode_floats, node, &sub_lo[s], &sub_hi[s]);
+            sub_cost[s] = vcost[node];
+            continue;
+        }
+        sub_lo[s] = min3(sub_lo[rest], sub_lo[low]);
+        sub_hi[s] = max3(sub_hi[rest], sub_hi[low]);
+        /* Partitions {S\P, P} with P a non-empty subset of `rest` in
+         * ascending order: each unordered partition once, S\P holding the
+         * lowest leaf; the first of equal costs wins. */
+        int best_p = rest, p = 0;
+        float best = INFINITY;
+        do {
+            p = (p - rest) & rest;
+            const float c = sub_cost[s ^ p] + sub_cost[p];
+            if (c < best) {
+                best = c;
+                best_p = p;
+            }
+        } while (p != rest);
+        sub_split[s] = best_p;
+        sub_cost[s] = c_node * scaled_half_area(sub_lo[s], sub_hi[s], scale) + best;
+    }
+    /* Reuse the treelet's internal nodes for the optimal topology, depth first. */
+    int stack_set[TREELET_LEAVES], stack_node[TREELET_LEAVES];
+    int top = 0, next_inner = 1;
+    stack_set[0] = full;
+    stack_node[0] = root;
+    while (top >= 0) {
+        const int s = stack_set[top], node = stack_node[top];
+        --top;
+        const int part[2] = {s ^ sub_split[s], sub_split[s]};
+        int kid[2];
+        for (int c = 0; c < 2; ++c) {
+            if (popcount(part[c]) == 1) {
+                kid[c] = leaf[bit_index(part[c])];
+            } else {
+                kid[c] = inner[next_inner++];
+                ++top;
+                stack_set[top] = part[c];
+                stack_node[top] = kid[c];
+            }
+            parent[kid[c]] = node;
+        }
+        write_node(node_floats, node, sub_lo[s], sub_hi[s], kid[0], kid[1]);
+        cost[node] = sub_cost[s];
+    }
+}
+
+/* Leaves are nodes leaf_first + k (Karras numbering) or leaf_nodes[k]. */
+__kernel void restructure_treelets(__global float4 *nodes, __global int *parent,
+                                   __global float *cost, __global int *arrivals,
+                                   __global const int *leaf_nodes, const int use_leaf_list,
+                                   const int leaf_first, const int num_leaves, const int per_item,
+                                   const int root, const float c_node, const float c_tri) {
+    const int gid = get_global_id(0);
+    const int first = chunk_first(gid, per_item, num_leaves);
+    const int last = chunk_last(gid, per_item, num_leaves);
+    __global float *node_floats = (__global float *)nodes;
+    vfloat_t *vnode_floats = (vfloat_t *)nodes;
+    vint_t *node_words = (vint_t *)nodes;
+    const float scale = box_scale(nodes[2 * root].xyz, nodes[2 * root + 1].xyz);
+    for (int k = first; k < last; ++k) {
+        const int leaf = use_leaf_list ? leaf_nodes[k] : leaf_first + k;
+        float3 lo, hi;
+        read_box(vnode_floats, leaf, &lo, &hi);
+        const float count = (float)(-child_word(node_words, leaf, 1));
+        cost[leaf] = c_tri * count * scaled_half_area(lo, hi, scale);
+    }
+    for (int k = first; k < last; ++k) {
+        int node = use_leaf_list ? leaf_nodes[k] : leaf_first + k;
+        for (;;) {
+            const int p = parent[node];
+            if (p < 0 || !second_arrival(arrivals, p)) break;
+            restructure_at(p, node_floats, vnode_floats, node_words, parent, cost,
+                           (vfloat_t *)cost, scale, c_node);
+            node = p;
+        }
+    }
+}
