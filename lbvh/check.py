@@ -69,6 +69,7 @@ BUILDERS: dict[str, dict[str, Any]] = {
     "lbvh30-collapse": {"builder": "lbvh", "key_bits": 30, "collapse": True},
     "lbvh63-collapse": {"builder": "lbvh", "key_bits": 63, "collapse": True},
     "lbvh-auto-collapse": {"builder": "lbvh", "key_bits": "auto", "collapse": True},
+    "lbvh-auto-treelets": {"builder": "lbvh", "key_bits": "auto", "treelet_rounds": 2},
     "sah": {"builder": "sah"},
 }
 

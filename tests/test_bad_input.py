@@ -214,6 +214,10 @@ ROWS: list[Row] = [
         ValueError, "leaf_size"),
     Row("lbvh.build", "collapse with the SAH builder",
         lambda e: _b(e, e.v, e.f, builder="sah", collapse=True), ValueError, "collapse"),
+    Row("lbvh.build", "treelet_rounds=-1", lambda e: _b(e, e.v, e.f, treelet_rounds=-1),
+        ValueError, "treelet_rounds: -1"),
+    Row("lbvh.build", "treelet_rounds with the SAH builder",
+        lambda e: _b(e, e.v, e.f, builder="sah", treelet_rounds=1), ValueError, "treelet_rounds"),
     Row("lbvh.build", "negative collapse cost", lambda e: _b(e, e.v, e.f, collapse=True, c_node=-1),
         ValueError, "c_node: -1"),
     Row("lbvh.build", "SAH max_leaf_size=0", lambda e: _b(e, e.v, e.f, builder="sah", max_leaf_size=0),
@@ -342,6 +346,9 @@ ROWS: list[Row] = [
         "unrecognized arguments: --fast", command=True),
     Row("lbvh info", "--collapse with --builder sah", lambda e: [
         "info", e.path("good.obj"), "--builder", "sah", "--collapse"], SystemExit, "collapse",
+        command=True),
+    Row("lbvh info", "--treelets -2", lambda e: [
+        "info", e.path("good.obj"), "--treelets", "-2"], SystemExit, "treelet_rounds: -2",
         command=True),
     Row("lbvh render", "truncated GLB", lambda e: [
         "render", e.path("truncated.glb"), "-o", e.path("out.png")], SystemExit,
