@@ -134,13 +134,22 @@ class Variant:
         return self.family in ("lbvh", "sah")
 
 
+#: Rounds of treelet restructuring in the restructured variants.
+TREELET_ROUNDS = 2
+
+
 def our_variants() -> list[Variant]:
-    """The device LBVH (3 key widths x with/without collapse) and the SAH reference."""
+    """The device LBVH (3 key widths x with/without collapse), the automatic width with
+    treelet restructuring (with/without collapse) and the SAH reference."""
     out = []
     for bits in (30, 63, "auto"):
         out.append(Variant(f"lbvh-{bits}", "lbvh", {"key_bits": bits}))
         out.append(Variant(f"lbvh-{bits}+collapse", "lbvh", {"key_bits": bits, "collapse": True,
                                                               **SAH_OPTIONS}))
+    treelets = {"key_bits": "auto", "treelet_rounds": TREELET_ROUNDS}
+    out.append(Variant(f"lbvh-auto+treelets{TREELET_ROUNDS}", "lbvh", treelets))
+    out.append(Variant(f"lbvh-auto+treelets{TREELET_ROUNDS}+collapse", "lbvh",
+                       {**treelets, "collapse": True, **SAH_OPTIONS}))
     out.append(Variant(REFERENCE, "sah", {"builder": "sah", **SAH_OPTIONS}))
     return out
 

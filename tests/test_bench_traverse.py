@@ -31,7 +31,7 @@ def _finite_positive(x) -> bool:
 
 
 def _expected_tracers() -> set[str]:
-    ours = [bench.OURS, f"{bench.OURS}+collapse"]
+    ours = [bench.OURS, f"{bench.OURS}+collapse", bench.TREELETS]
     names = set(ours)
     if bench.kernel_only_missing() is None:
         names |= {f"{n} (kernel only)" for n in ours}
@@ -127,12 +127,15 @@ def test_quick_ratios_and_targets(quick):
             assert ratio["round_min"] <= ratio["round_max"] and len(ratio["rounds"]) == report["settings"]["repeats"]
     statuses = {(t["peer"], t["status"].split(" (")[0]) for t in report["targets"]}
     assert all("caveat" in t for t in report["targets"])
-    for peer, at_least in bench.TARGETS:
-        t = next(t for t in report["targets"] if t["peer"] == peer)
-        if (("closest", peer)) in rows:
-            assert t["status"] == ("MET" if t["ratio"] >= at_least else "NOT MET")
-        else:
-            assert (peer, "NOT MEASURED") in statuses
+    assert {t["ours"] for t in report["targets"]} == set(bench.TARGET_TREES)
+    for tree in bench.TARGET_TREES:
+        for peer, at_least in bench.TARGETS:
+            t = next(t for t in report["targets"] if t["peer"] == peer and t["ours"] == tree)
+            if (("closest", peer)) in rows:
+                assert t["ratio"] == rows[("closest", tree)]["vs"][peer]["ratio"]
+                assert t["status"] == ("MET" if t["ratio"] >= at_least else "NOT MET")
+            else:
+                assert (peer, "NOT MEASURED") in statuses
 
 
 def test_quick_markdown_has_the_tables_and_targets(quick):
