@@ -32,6 +32,7 @@
  *   SLAB_PAD=x       factor on the far distance of a box (Ize 2013)
  *   NO_FP64=1        leave out the double fallback of the watertight test
  *   PAIRS=0          read the tree's own nodes instead of the pair records
+ *   RAY_ORDER=1      trace the rays in the order order[] gives (ray_order.cl)
  *
  * Rays come as four arrays: origins and directions (3 floats per ray), tmin
  * and tmax (one float per ray, or one for all rays with a stride of 0).
@@ -343,6 +344,9 @@ __kernel void pack_pairs(__global const float4 *nodes, const int num_nodes, cons
 #ifndef PAIRS
 #define PAIRS 1
 #endif
+#ifndef RAY_ORDER
+#define RAY_ORDER 0
+#endif
 
 /* The box and the reference of child k (0 left, 1 right) of internal node x:
  * from x's pair record (PAIRS=1), or from the tree's own nodes (PAIRS=0, for
@@ -392,7 +396,7 @@ __kernel void traverse(__global const float4 *nodes, __global const float4 *pair
                        const int root, const int root_x, const int root_y, const int num_nodes,
                        __global const float *origins, __global const float *directions,
                        __global const float *tmins, __global const float *tmaxs,
-                       const int interval_stride,
+                       const int interval_stride, __global const int *order,
                        __global float *hits, __global int *flags, __global int2 *counters,
                        const int count, const int per_item) {
     const int gid = get_global_id(0);
@@ -406,7 +410,12 @@ __kernel void traverse(__global const float4 *nodes, __global const float4 *pair
     int stack_y[STACK_SIZE];
     float stack_entry[STACK_SIZE];
 
-    for (int i = first; i < last; ++i) {
+    for (int k = first; k < last; ++k) {
+#if RAY_ORDER
+        const int i = order[k];  /* rays in the order of ray_order.cl's keys */
+#else
+        const int i = k;
+#endif
         const Ray ray = make_ray(origins + 3 * i, directions + 3 * i,
                                  tmins[i * interval_stride], tmaxs[i * interval_stride]);
         float best = INFINITY, bu = 0.0f, bv = 0.0f;

@@ -50,6 +50,7 @@ import pyopencl as cl
 from . import device as dev
 from .geometry import real_array
 from .layout import NODE_DTYPE, is_leaf
+from .ray_order import ray_order, worth_ordering
 
 KERNEL_FILE = "traverse.cl"
 
@@ -460,19 +461,29 @@ def drop_pairs(bvh: Any) -> None:
 
 # -- device-level entry -----------------------------------------------------------
 
+def root_box(bvh: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``float32 (3,)`` lower and upper corner of the root's box, read from the device."""
+    record = np.empty(8, np.float32)
+    cl.enqueue_copy(bvh.ctx.queue, record, bvh.nodes_buf, src_offset=32 * bvh.root,
+                    is_blocking=True)
+    return record[:3], record[4:7]
+
+
 def trace_buffers(bvh: Any, rays: DeviceRays, *, any_hit: bool = False,
                   triangle_test: str = "watertight", counters: bool = False,
                   stack_size: int | None = None, hits: cl.Buffer | None = None,
                   flags: cl.Buffer | None = None, counter_buf: cl.Buffer | None = None,
-                  wait_for: list[cl.Event] | None = None,
+                  wait_for: list[cl.Event] | None = None, order: cl.Buffer | None = None,
                   defines: dict[str, int | str] | None = None) -> DeviceHits:
     """Trace rays already on the device; nothing is read back.
 
     ``rays`` (see :func:`upload_rays`) must have passed :func:`check_rays`.
     Output buffers are allocated unless given: ``hits`` (16 bytes per ray: four
     planes of ``count`` float32, t, u, v and the primitive as int32), ``flags`` (4),
-    ``counter_buf`` (8, with ``counters``). ``defines`` adds or overrides -D
-    defines of kernels/traverse.cl (tests, experiments).
+    ``counter_buf`` (8, with ``counters``). ``order`` (int32 per ray, a
+    permutation, see :mod:`lbvh.ray_order`) sets the order the rays are traced
+    in; the answers stay in the rays' own slots. ``defines`` adds or overrides
+    -D defines of kernels/traverse.cl (tests, experiments).
     """
     ctx = bvh.ctx
     if stack_size is None:
@@ -480,7 +491,8 @@ def trace_buffers(bvh: Any, rays: DeviceRays, *, any_hit: bool = False,
     pairs = pairs_for(bvh)
     knl = ctx.kernel(KERNEL_FILE, "traverse",
                      {**_defines(ctx, any_hit, triangle_test, counters, stack_size),
-                      "PAIRS": int(pairs.packed), **(defines or {})})
+                      "PAIRS": int(pairs.packed), "RAY_ORDER": int(order is not None),
+                      **(defines or {})})
     count = int(rays.count)
     if hits is None:
         hits = dev.empty(ctx, 16 * count)
@@ -492,7 +504,8 @@ def trace_buffers(bvh: Any, rays: DeviceRays, *, any_hit: bool = False,
     ev = knl(ctx.queue, (global_size,), local, bvh.nodes_buf, pairs.buffer, bvh.prim_order_buf,
              bvh.vertices_buf, slot_faces_for(bvh), np.int32(bvh.root), np.int32(pairs.root_x),
              np.int32(pairs.root_y), np.int32(bvh.num_nodes), rays.origins, rays.directions,
-             rays.tmin, rays.tmax, np.int32(rays.interval_stride), hits, flags,
+             rays.tmin, rays.tmax, np.int32(rays.interval_stride),
+             order if order is not None else flags, hits, flags,
              counter_buf if counters else flags, np.int32(count), np.int32(per_item),
              wait_for=wait_for)
     return DeviceHits(count, hits, flags, counter_buf if counters else None, ev)
@@ -542,9 +555,14 @@ def _trace(bvh: Any, origins: Any, directions: Any, tmin: Any, tmax: Any, any_hi
                 ups += [cl.enqueue_copy(queue, bufs["lo"], lo[start:stop], is_blocking=False),
                         cl.enqueue_copy(queue, bufs["hi"], hi[start:stop], is_blocking=False)]
             device_rays = DeviceRays(m, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"], stride)
+            order = None
+            if worth_ordering(m, bvh.num_nodes):
+                cl.wait_for_events(ups)
+                order, ups = ray_order(ctx, bufs["o"], bufs["d"], m, *root_box(bvh))
             result = trace_buffers(bvh, device_rays, any_hit=any_hit, triangle_test=triangle_test,
                                    counters=counters, stack_size=stack_size, hits=bufs["hits"],
-                                   flags=bufs["flags"], counter_buf=bufs.get("count"), wait_for=ups)
+                                   flags=bufs["flags"], counter_buf=bufs.get("count"),
+                                   wait_for=ups, order=order)
             for k in range(4):
                 cl.enqueue_copy(queue, planes[k, start:stop], bufs["hits"], src_offset=4 * k * m,
                                 wait_for=[result.event], is_blocking=False)
@@ -554,6 +572,8 @@ def _trace(bvh: Any, origins: Any, directions: Any, tmin: Any, tmax: Any, any_hi
                 cl.enqueue_copy(queue, count[start:stop], bufs["count"], wait_for=[result.event],
                                 is_blocking=False)
             queue.finish()
+            if order is not None:
+                order.release()
     finally:
         for buf in bufs.values():
             buf.release()

@@ -1,0 +1,53 @@
+/* Ray order: one 30-bit key per ray, so that sorting the rays by key puts rays
+ * that visit the same nodes next to each other (Garanzha & Loop 2010, "Fast
+ * Ray Sorting and Breadth-First Packet Traversal for GPU Ray Tracing",
+ * section 3: rays hashed by origin cell and direction, then sorted). A
+ * work-item traces its rays one after the other, so the nodes a ray shares
+ * with the previous one are still in cache.
+ *
+ *   key = morton(origin cell) << 15 | morton(direction cell)
+ *   origin cell:    (o - lower) * inv_extent in [0, 1], 5 bits per axis
+ *   direction cell: (d / max|d_i| + 1) / 2 in [0, 1], 5 bits per axis
+ *
+ * The key only orders the work; every ray gets the same answer in any order.
+ * inv_extent comes from the host (float32), so the numpy twin
+ * (lbvh/ray_order.py) computes the same keys on a device whose division is
+ * correctly rounded.
+ */
+#include "common.h"
+
+#define CELL_BITS 5
+
+/* t in [0, 1] to a cell in [0, 31]; NaN and values outside land in range. */
+inline uint cell_of(float t) {
+    float q = t * (float)(1 << CELL_BITS);
+    q = q > 0.0f ? q : 0.0f;  /* NaN compares false: 0 */
+    q = q < (float)((1 << CELL_BITS) - 1) ? q : (float)((1 << CELL_BITS) - 1);
+    return (uint)q;
+}
+
+/* Interleave three cells, x highest (the bit order of morton.cl). */
+inline uint interleave(uint x, uint y, uint z) {
+    uint code = 0;
+    for (int b = CELL_BITS - 1; b >= 0; --b)
+        code = (code << 3) | (((x >> b) & 1u) << 2) | (((y >> b) & 1u) << 1) | ((z >> b) & 1u);
+    return code;
+}
+
+__kernel void ray_keys(__global const float *origins, __global const float *directions,
+                       const int count, const int per_item, const float4 lower,
+                       const float4 inv_extent, __global uint *keys, __global int *order) {
+    const int gid = get_global_id(0);
+    const int last = chunk_last(gid, per_item, count);
+    for (int i = chunk_first(gid, per_item, count); i < last; ++i) {
+        const float3 o = load_float3(origins, i);
+        const float3 d = load_float3(directions, i);
+        const float3 a = (o - lower.xyz) * inv_extent.xyz;
+        const float m = max(max(fabs(d.x), fabs(d.y)), fabs(d.z));  /* > 0: checked on the host */
+        const float3 u = (d / m + 1.0f) * 0.5f;
+        const uint origin_code = interleave(cell_of(a.x), cell_of(a.y), cell_of(a.z));
+        const uint direction_code = interleave(cell_of(u.x), cell_of(u.y), cell_of(u.z));
+        keys[i] = origin_code << (3 * CELL_BITS) | direction_code;
+        order[i] = i;
+    }
+}
