@@ -13,7 +13,12 @@
  * run with many small chunks. Passes whose digit is the same in every key are
  * skipped by the host, which reads the AND and OR of all keys (key_bits).
  *
+ * On a CPU, with many keys and more varying bits than one digit holds, the
+ * host runs one such pass over the highest varying bits only and then
+ * sort_buckets (below) instead of the remaining passes.
+ *
  * KEY_BITS (define): 32 or 64. RADIX_BITS (define): digit width, e.g. 8.
+ * LOCAL_BITS (define): digit width of sort_buckets' in-cache passes.
  */
 #include "common.h"
 
@@ -87,5 +92,62 @@ __kernel void scatter(__global const key_t *keys_in, __global const uint *values
         uint pos = offset[digit_of(k, shift)]++;
         keys_out[pos] = k;
         values_out[pos] = values_in[i];
+    }
+}
+
+/* CPU path for long keys (lbvh/sort.py decides). After one stable scatter by
+ * the digit of the highest varying bits (the kernels above, an MSD pass), the
+ * keys sharing that digit form a bucket of about n / 2^RADIX_BITS keys, small
+ * enough to stay in cache while LSD passes of LOCAL_BITS-bit digits sort it on
+ * the remaining bits where it lies: one pass over memory instead of one per
+ * digit. Every pass is stable, so the result is the stable sort by the whole
+ * key (LSD within MSD buckets; Knuth, TAOCP vol. 3, 5.2.5, exercise 10's
+ * hybrid). Passes alternate between the two buffers inside the bucket's
+ * range, so every bucket ends in the same buffer: a after an even number of
+ * passes, b after an odd one.
+ *
+ * Work-item g sorts the buckets that start in its chunk of [0, n). */
+#define LOCAL_RADIX (1 << LOCAL_BITS)
+#define LOCAL_MASK (LOCAL_RADIX - 1)
+
+inline void bucket_pass(__global const key_t *src_keys, __global const uint *src_values,
+                        __global key_t *dst_keys, __global uint *dst_values,
+                        uint start, uint end, int shift) {
+    uint offset[LOCAL_RADIX];
+    for (int d = 0; d < LOCAL_RADIX; ++d) offset[d] = 0;
+    for (uint i = start; i < end; ++i) offset[(uint)(src_keys[i] >> shift) & LOCAL_MASK]++;
+    uint sum = start;
+    for (int d = 0; d < LOCAL_RADIX; ++d) {
+        const uint c = offset[d];
+        offset[d] = sum;
+        sum += c;
+    }
+    for (uint i = start; i < end; ++i) {
+        const key_t k = src_keys[i];
+        const uint pos = offset[(uint)(k >> shift) & LOCAL_MASK]++;
+        dst_keys[pos] = k;
+        dst_values[pos] = src_values[i];
+    }
+}
+
+__kernel void sort_buckets(__global key_t *keys_a, __global uint *values_a,
+                           __global key_t *keys_b, __global uint *values_b,
+                           const int n, const int per_item, __global const uint *digit_totals,
+                           __global const int *local_shifts, const int num_local) {
+    const int gid = get_global_id(0);
+    const uint lo = (uint)chunk_first(gid, per_item, n);
+    const uint hi = (uint)chunk_last(gid, per_item, n);
+    uint start = 0;
+    for (int d = 0; d < RADIX && start < hi; ++d) {
+        const uint end = start + digit_totals[d];
+        if (start >= lo && end > start) {
+            for (int p = 0; p < num_local; ++p) {
+                if (p % 2 == 0)
+                    bucket_pass(keys_a, values_a, keys_b, values_b, start, end, local_shifts[p]);
+                else
+                    bucket_pass(keys_b, values_b, keys_a, values_a, start, end, local_shifts[p]);
+            }
+        }
+        start = end;
     }
 }

@@ -18,7 +18,7 @@ from lbvh.emit import emit_hierarchy, emit_hierarchy_python
 from lbvh.layout import NODE_DTYPE, children_of
 from lbvh.morton import KEY_DTYPE, count_duplicates, morton_codes, morton_codes_numpy
 from lbvh.refit import refit_boxes, refit_numpy
-from lbvh.sort import digit_shifts, radix_sort, radix_sort_numpy
+from lbvh.sort import LOCAL_BITS, MSD_MIN_KEYS, digit_shifts, msd_plan, radix_sort, radix_sort_numpy
 
 
 def upload(ctx, v, f):
@@ -119,6 +119,37 @@ def test_radix_sort_skips_uniform_digits(ctx):
     assert passes == 0 and np.array_equal(got_v, np.arange(1000))
     assert digit_shifts(0xFF00, 32, 8) == [8] and digit_shifts(1 << 62, 64, 8) == [56]
     assert digit_shifts(0xFF00, 32, 11) == [0, 11] and digit_shifts(1 << 62, 64, 11) == [55]
+
+
+@pytest.mark.parametrize("key_bits", [32, 64])
+def test_msd_buckets_of_very_different_sizes_sort_stably(ctx, key_bits):
+    """The CPU path's buckets: most keys share the top digit, a few spread over
+    the others, duplicates everywhere (stability shows through the values)."""
+    rng = np.random.default_rng(key_bits)
+    n = 3 * MSD_MIN_KEYS
+    top = 29 if key_bits == 32 else 62
+    keys = rng.integers(0, 1 << 12, n).astype(np.uint64) << (top - 20)   # duplicates
+    few = rng.random(n) < 0.05
+    keys[few] |= rng.integers(1, 1 << 11, few.sum()).astype(np.uint64) << (top - 10)
+    keys = keys.astype(KEY_DTYPE[key_bits])
+    values = rng.permutation(n).astype(np.uint32)
+    got_k, got_v, passes = sort_on_device(ctx, keys, values, key_bits)
+    exp_k, exp_v = radix_sort_numpy(keys, values)
+    assert np.array_equal(got_k, exp_k) and np.array_equal(got_v, exp_v)
+    if ctx.is_cpu:
+        plan = msd_plan(int(np.bitwise_or.reduce(keys)) ^ int(np.bitwise_and.reduce(keys)), n, 11, True)
+        assert plan is not None and passes == 1 + len(plan[1])
+
+
+def test_msd_plan():
+    # 30 varying bits: one 11-bit MSD digit at bit 19, in-cache digits at 0 and 10
+    assert LOCAL_BITS == 10
+    assert msd_plan((1 << 30) - 1, MSD_MIN_KEYS, 11, True) == (19, [0, 10])
+    assert msd_plan((1 << 30) - 1, MSD_MIN_KEYS - 1, 11, True) is None     # few keys: LSD
+    assert msd_plan((1 << 30) - 1, MSD_MIN_KEYS, 8, False) is None         # a GPU: LSD
+    assert msd_plan(0x7FF << 5, MSD_MIN_KEYS, 11, True) is None            # one digit suffices
+    # constant low bits are skipped in the buckets too
+    assert msd_plan(((1 << 11) - 1) << 40 | 1 << 35, MSD_MIN_KEYS, 11, True) == (40, [30])
 
 
 def emitted_tree(ctx, sorted_keys, key_bits):
