@@ -268,8 +268,12 @@ def brute_force(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: 
         order = np.lexsort((tri, t, ray))            # by ray, then t, then triangle index
         first = order[np.unique(ray[order], return_index=True)[1]]
         r = ray[first]
-        # + 0 turns -0.0 into +0.0, as the kernel does
-        out.t[r], out.prim[r], out.u[r], out.v[r] = t[first] + 0, tri[first], bu[first], bv[first]
+        # + 0 turns -0.0 into +0.0, as the kernel does. A float64 t beyond float32's
+        # range becomes inf, as the kernel's t does (a hit that far is still a hit:
+        # its primitive is kept); the cast's overflow warning says nothing more.
+        with np.errstate(over="ignore"):
+            out.t[r], out.prim[r], out.u[r], out.v[r] = (t[first] + 0, tri[first], bu[first],
+                                                          bv[first])
     return out
 
 
