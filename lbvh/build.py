@@ -1,6 +1,6 @@
 """The device LBVH build: the six stages in order, data kept on the device throughout.
 
-    bounds -> morton -> sort -> emit -> refit
+    bounds -> morton -> sort -> emit -> refit [-> restructure (treelet_rounds)]
 
 The host reads back only scalars that decide which kernels run next: the
 varying key bits (which sort passes to skip) and, with ``key_bits="auto"``,
