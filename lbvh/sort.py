@@ -86,6 +86,7 @@ def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buf
                ) -> SortResult:
     """Sort pairs stably by key. Returns the buffers holding the result (inputs or new ones).
 
+    ``keys`` and ``values`` must be writable: the passes use them as scratch.
     With ``free_inputs`` the buffers not returned are released as soon as the
     sort no longer needs them. ``radix_bits`` overrides the device's digit width
     (:func:`radix_bits_for`).

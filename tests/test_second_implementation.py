@@ -32,7 +32,8 @@ rng = np.random.default_rng(0)
 targets = v[f[rng.integers(0, len(f), 200)]].mean(axis=1)
 o = (rng.random((200, 3)) * 3 - 1).astype(np.float32)
 d = (targets - o).astype(np.float32)
-for kw in ({"key_bits": 30}, {"key_bits": 63}, {"collapse": True}, {"builder": "sah"}):
+for kw in ({"key_bits": 30}, {"key_bits": 63}, {"collapse": True}, {"builder": "sah"},
+           {"treelet_rounds": 2}, {"treelet_rounds": 1, "collapse": True}):
     a = lbvh.build(v, f, device="oclgrind", **kw)
     p = lbvh.build(v, f, device="pthread", **kw)
     assert "Oclgrind" in a.ctx.name and "pthread" in p.ctx.name
@@ -46,6 +47,31 @@ for kw in ({"key_bits": 30}, {"key_bits": 63}, {"collapse": True}, {"builder": "
     p.refit(v * np.float32(1.5))
     assert np.array_equal(a.nodes, p.nodes), kw
     print("same on both:", kw)
+
+# The CPU paths that need large inputs on PoCL, at a small size: the MSD sort
+# and the ray order.
+import pyopencl as cl
+import lbvh.sort
+from lbvh import device as dev
+from lbvh.ray_order import ray_order
+lbvh.sort.MSD_MIN_KEYS = 1000
+keys = rng.integers(0, 1 << 30, 5000).astype(np.uint32)
+values = np.arange(5000, dtype=np.uint32)
+lo, hi = v.min(axis=0), v.max(axis=0)
+answers = []
+for name in ("oclgrind", "pthread"):
+    ctx = dev.get_context(name)
+    mem = dev.MemoryTracker(ctx)
+    rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR  # the sort works in place
+    res = lbvh.sort.radix_sort(ctx, mem, cl.Buffer(ctx.ctx, rw, hostbuf=keys),
+                               cl.Buffer(ctx.ctx, rw, hostbuf=values), 5000, 32, radix_bits=11)
+    order, _ = ray_order(ctx, dev.to_device(ctx, o), dev.to_device(ctx, d), len(o), lo, hi)
+    answers.append((dev.from_device(ctx, res.values, np.uint32, (5000,)),
+                    dev.from_device(ctx, order, np.int32, (len(o),))))
+assert res.passes == 1 + 2
+assert np.array_equal(answers[0][0], np.argsort(keys, kind="stable"))
+assert all(np.array_equal(a, b) for a, b in zip(*answers))
+print("same on both: MSD sort and ray order")
 """
 
 
@@ -58,5 +84,5 @@ def test_builders_refit_and_traversal_agree_on_oclgrind(tmp_path):
     out = subprocess.run([sys.executable, "-c", SCRIPT], cwd=REPO, env=env, capture_output=True,
                          text=True, timeout=600)
     assert out.returncode == 0, out.stdout + out.stderr[-3000:]
-    assert out.stdout.count("same on both") == 4
+    assert out.stdout.count("same on both") == 7
     assert "Invalid" not in out.stderr  # Oclgrind reports out-of-bounds accesses on stderr
