@@ -62,63 +62,70 @@ inline void write_node(__global float *node_floats, int node, float3 lo, float3 
 /* Index of the single set bit of a power of two (OpenCL 1.2 has no ctz). */
 inline int bit_index(int single_bit) { return 31 - (int)clz((uint)single_bit); }
 
-/* Rebuild the treelet rooted at internal node `root`; its cost is written
- * with the others. */
-inline void restructure_at(int root, __global float *node_floats, vfloat_t *vnode_floats,
-                           vint_t *node_words, __global int *parent, __global float *cost,
-                           vfloat_t *vcost, float scale, float c_node) {
+/* A treelet: its leaves (BVH nodes whose subtrees stay as they are) and its
+ * internal nodes (the root first, then the expanded nodes in order). */
+typedef struct {
     int leaf[TREELET_LEAVES];
-    float leaf_area[TREELET_LEAVES];
     int inner[TREELET_LEAVES - 1];
-    int num_leaves = 2, num_inner = 1;
-    inner[0] = root;
+    int num_leaves;
+} treelet_t;
+
+/* Put x's children in treelet slots a (left) and b (right), with their areas. */
+inline void place_children(treelet_t *t, float *area, int x, int a, int b, vint_t *node_words,
+                           vfloat_t *vnode_floats, float scale) {
+    const int at[2] = {a, b};
     for (int c = 0; c < 2; ++c) {
         float3 lo, hi;
-        leaf[c] = child_word(node_words, root, c);
-        read_box(vnode_floats, leaf[c], &lo, &hi);
-        leaf_area[c] = scaled_half_area(lo, hi, scale);
+        t->leaf[at[c]] = child_word(node_words, x, c);
+        read_box(vnode_floats, t->leaf[at[c]], &lo, &hi);
+        area[at[c]] = scaled_half_area(lo, hi, scale);
     }
-    /* Formation (section 4.1). */
-    while (num_leaves < TREELET_LEAVES) {
+}
+
+/* Section 4.1: from the root's two children, expand the treelet leaf of
+ * largest area that is an internal node of the BVH (left child in its place,
+ * right child appended; ties: the first), up to TREELET_LEAVES leaves. */
+inline void form_treelet(int root, vint_t *node_words, vfloat_t *vnode_floats, float scale,
+                         treelet_t *t) {
+    float area[TREELET_LEAVES];
+    int num_inner = 1;
+    t->inner[0] = root;
+    place_children(t, area, root, 0, 1, node_words, vnode_floats, scale);
+    t->num_leaves = 2;
+    while (t->num_leaves < TREELET_LEAVES) {
         int grow = -1;
-        float grow_area = 0.0f;
-        for (int i = 0; i < num_leaves; ++i) {
-            const int internal = !node_is_leaf(child_word(node_words, leaf[i], 1));
-            if (internal && (grow < 0 || leaf_area[i] > grow_area)) {
-                grow = i;
-                grow_area = leaf_area[i];
-            }
+        for (int i = 0; i < t->num_leaves; ++i) {
+            const int internal = !node_is_leaf(child_word(node_words, t->leaf[i], 1));
+            if (internal && (grow < 0 || area[i] > area[grow])) grow = i;
         }
         if (grow < 0) break;
-        const int x = leaf[grow];
-        inner[num_inner++] = x;
-        const int at[2] = {grow, num_leaves++};
-        for (int c = 0; c < 2; ++c) {
-            float3 lo, hi;
-            leaf[at[c]] = child_word(node_words, x, c);
-            read_box(vnode_floats, leaf[at[c]], &lo, &hi);
-            leaf_area[at[c]] = scaled_half_area(lo, hi, scale);
-        }
+        const int x = t->leaf[grow];
+        t->inner[num_inner++] = x;
+        place_children(t, area, x, grow, t->num_leaves, node_words, vnode_floats, scale);
+        ++t->num_leaves;
     }
-    /* Optimal topology (section 4.2): boxes, areas and costs of every subset. */
-    float3 sub_lo[SUBSETS], sub_hi[SUBSETS];
-    float sub_cost[SUBSETS];
-    int sub_split[SUBSETS];
-    const int full = (1 << num_leaves) - 1;
+}
+
+/* Section 4.2 (Algorithm 2): box, cost and best split of every subset S of
+ * the leaves, in increasing order of the bit mask (every proper subset of S
+ * comes before S). Partitions {S\P, P}, P a non-empty subset of S without its
+ * lowest leaf, in ascending order: each unordered partition once; the first
+ * of equal costs wins. */
+inline void optimal_topology(const treelet_t *t, vfloat_t *vnode_floats, vfloat_t *vcost,
+                             float scale, float c_node, float3 *sub_lo, float3 *sub_hi,
+                             float *sub_cost, int *sub_split) {
+    const int full = (1 << t->num_leaves) - 1;
     for (int s = 1; s <= full; ++s) {
         const int low = s & -s;
         const int rest = s ^ low;
         if (rest == 0) {
-            const int node = leaf[bit_index(low)];
+            const int node = t->leaf[bit_index(low)];
             read_box(vnode_floats, node, &sub_lo[s], &sub_hi[s]);
             sub_cost[s] = vcost[node];
             continue;
         }
         sub_lo[s] = min3(sub_lo[rest], sub_lo[low]);
         sub_hi[s] = max3(sub_hi[rest], sub_hi[low]);
-        /* Partitions {S\P, P} with P a non-empty subset of `rest` in
-         * ascending order: each unordered partition once, S\P holding the
-         * lowest leaf; the first of equal costs wins. */
         int best_p = rest, p = 0;
         float best = INFINITY;
         do {
@@ -132,11 +139,18 @@ inline void restructure_at(int root, __global float *node_floats, vfloat_t *vnod
         sub_split[s] = best_p;
         sub_cost[s] = c_node * scaled_half_area(sub_lo[s], sub_hi[s], scale) + best;
     }
-    /* Reuse the treelet's internal nodes for the optimal topology, depth first. */
+}
+
+/* Rewire the treelet's internal nodes into the optimal topology, depth first
+ * from the root (children: S\P left, P right), with their boxes and costs. */
+inline void rebuild_treelet(const treelet_t *t, const float3 *sub_lo, const float3 *sub_hi,
+                            const float *sub_cost, const int *sub_split,
+                            __global float *node_floats, __global int *parent,
+                            __global float *cost) {
     int stack_set[TREELET_LEAVES], stack_node[TREELET_LEAVES];
     int top = 0, next_inner = 1;
-    stack_set[0] = full;
-    stack_node[0] = root;
+    stack_set[0] = (1 << t->num_leaves) - 1;
+    stack_node[0] = t->inner[0];
     while (top >= 0) {
         const int s = stack_set[top], node = stack_node[top];
         --top;
@@ -144,9 +158,9 @@ inline void restructure_at(int root, __global float *node_floats, vfloat_t *vnod
         int kid[2];
         for (int c = 0; c < 2; ++c) {
             if (popcount(part[c]) == 1) {
-                kid[c] = leaf[bit_index(part[c])];
+                kid[c] = t->leaf[bit_index(part[c])];
             } else {
-                kid[c] = inner[next_inner++];
+                kid[c] = t->inner[next_inner++];
                 ++top;
                 stack_set[top] = part[c];
                 stack_node[top] = kid[c];
@@ -156,6 +170,19 @@ inline void restructure_at(int root, __global float *node_floats, vfloat_t *vnod
         write_node(node_floats, node, sub_lo[s], sub_hi[s], kid[0], kid[1]);
         cost[node] = sub_cost[s];
     }
+}
+
+/* Rebuild the treelet rooted at internal node `root` (its cost included). */
+inline void restructure_at(int root, __global float *node_floats, vfloat_t *vnode_floats,
+                           vint_t *node_words, __global int *parent, __global float *cost,
+                           vfloat_t *vcost, float scale, float c_node) {
+    treelet_t t;
+    form_treelet(root, node_words, vnode_floats, scale, &t);
+    float3 sub_lo[SUBSETS], sub_hi[SUBSETS];
+    float sub_cost[SUBSETS];
+    int sub_split[SUBSETS];
+    optimal_topology(&t, vnode_floats, vcost, scale, c_node, sub_lo, sub_hi, sub_cost, sub_split);
+    rebuild_treelet(&t, sub_lo, sub_hi, sub_cost, sub_split, node_floats, parent, cost);
 }
 
 /* Leaves are nodes leaf_first + k (Karras numbering) or leaf_nodes[k]. */
