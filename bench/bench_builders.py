@@ -56,7 +56,7 @@ import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 import pyopencl as cl
@@ -620,6 +620,22 @@ def warm_up(ctx: dev.Context, variants: list[Variant]) -> None:
             intersect(bvh, np.zeros((1, 3), np.float32), np.float32([[0.0, 0.0, 1.0]]))
 
 
+def loaded_scenes(names: list[str], load: Callable[[str], "Scene | str"], progress: "Progress",
+                  steps: int, skipped: list[dict]) -> Iterator[Scene]:
+    """Each scene that ``load(name)`` returns, in order, with progress. A scene it
+    cannot load (it returns the reason, a string) goes to ``skipped``, and its
+    ``steps`` count as done."""
+    for name in names:
+        progress.begin(f"{name}:")
+        progress.note("loading")
+        scene = load(name)
+        if isinstance(scene, str):
+            skipped.append({"scene": name, "reason": scene})
+            progress.done += steps
+            continue
+        yield scene
+
+
 def steps_per_scene(repeats: int) -> int:
     """Progress steps of one scene: build rounds, checks, render rounds, counters."""
     return 2 * repeats + 2
@@ -941,14 +957,11 @@ def main(argv: list[str] | None = None) -> dict:
     warm_up(ctx, variants)
     progress = Progress(len(args.scene_names) * steps_per_scene(args.repeats))
     scenes, rows, skipped = [], [], []
-    for name in args.scene_names:
-        progress.begin(f"{name}:")
-        progress.note("loading")
-        scene = load_bench_scene(name, args.size, cameras, args.shared)
-        if isinstance(scene, str):
-            skipped.append({"scene": name, "reason": scene})
-            progress.done += steps_per_scene(args.repeats)
-            continue
+    def load(name: str) -> Scene | str:
+        return load_bench_scene(name, args.size, cameras, args.shared)
+
+    for scene in loaded_scenes(args.scene_names, load, progress, steps_per_scene(args.repeats),
+                               skipped):
         contestants = [Contestant(v, builders[v.family]) for v in variants]
         summary, scene_rows = bench_scene(scene, contestants, settings, progress, out / "views")
         scenes.append(summary)

@@ -885,14 +885,11 @@ def main(argv: list[str] | None = None) -> dict:
     progress = bb.Progress(len(args.scene_names) * steps_per_scene(args.repeats))
     scenes, rows, skipped = [], [], []
     with ThreadPoolExecutor(max_workers=2) as pool:
-        for name in args.scene_names:
-            progress.begin(f"{name}:")
-            progress.note("loading")
-            scene = load_scene(name, args.size, cameras, args.shared)
-            if isinstance(scene, str):
-                skipped.append({"scene": name, "reason": scene})
-                progress.done += steps_per_scene(args.repeats)
-                continue
+        def load(name: str) -> bb.Scene | str:
+            return load_scene(name, args.size, cameras, args.shared)
+
+        for scene in bb.loaded_scenes(args.scene_names, load, progress,
+                                      steps_per_scene(args.repeats), skipped):
             summary, scene_rows = bench_scene(scene, ctx, peers, pool, args, progress)
             scenes.append(summary)
             rows += scene_rows
