@@ -557,7 +557,6 @@ def _trace(bvh: Any, origins: Any, directions: Any, tmin: Any, tmax: Any, any_hi
             device_rays = DeviceRays(m, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"], stride)
             order = None
             if worth_ordering(m, bvh.num_nodes):
-                cl.wait_for_events(ups)
                 order, ups = ray_order(ctx, bufs["o"], bufs["d"], m, *root_box(bvh))
             result = trace_buffers(bvh, device_rays, any_hit=any_hit, triangle_test=triangle_test,
                                    counters=counters, stack_size=stack_size, hits=bufs["hits"],
