@@ -13,7 +13,9 @@
  * so the tree is valid whatever the input.
  *
  * Numbering (docs/layout.md): internal node i is node i, leaf j is node n-1+j
- * and holds sorted slot j. Parent links are written by the parent.
+ * and holds sorted slot j. Parent links are written by the parent. The far
+ * end j of node i's range goes where its lower.x will be: the build's refit
+ * reads it (refit.cl, KARRAS_RANGES) and writes the box over it.
  *
  * KEY_BITS (define): 32 or 64. CLZ_BUILTIN (define): see clz_key below.
  */
@@ -91,6 +93,7 @@ inline void emit_internal(__global const key_t *keys, int n, int i,
     const int left = imin(i, j) == gamma ? (n - 1) + gamma : gamma;
     const int right = imax(i, j) == gamma + 1 ? (n - 1) + gamma + 1 : gamma + 1;
     set_children(node_words, i, left, right);
+    node_words[8 * i] = j;
     parent[left] = i;
     parent[right] = i;
 }

@@ -15,6 +15,16 @@
  *
  * A work-item walks `per_item` consecutive leaves (one on a GPU). Leaves are
  * leaf_nodes[k] when use_leaf_list, else leaf_first + k (Karras numbering).
+ *
+ * KARRAS_RANGES (define, the build's refit): the tree comes straight from
+ * emit.cl, whose internal nodes hold the far end of their range of slots in
+ * the word where lower.x goes. A node whose whole range lies in this
+ * work-item's chunk is reached only by this work-item's walks, which run in
+ * slot order, so its counter's outcome is known in advance: the walk from the
+ * left child arrives first, the one from the right child second (its left
+ * sibling's last leaf came earlier in the chunk). Only nodes that straddle a
+ * chunk boundary, a few dozen per chunk, pay for the atomic. On a GPU (one
+ * leaf per work-item) every internal node straddles: the plain scheme.
  */
 #include "common.h"
 
@@ -29,6 +39,17 @@ inline void load_box_volatile(volatile __global float *node_floats, int node,
     *lo = (float3)(p[0], p[1], p[2]);
     *hi = (float3)(p[4], p[5], p[6]);
 }
+
+#if KARRAS_RANGES
+/* Whether internal node p's range of slots, [min(p, j), max(p, j)] with j the
+ * far end that emit.cl left in its lower.x word, lies inside the chunk
+ * [first, last). Read before p's box is written over it: both walks reaching
+ * p read it before the second one writes. */
+inline int inside_chunk(__global const int *node_words, int p, int first, int last) {
+    const int far = node_words[8 * p];
+    return (p < far ? p : far) >= first && (p > far ? p : far) < last;
+}
+#endif
 
 __kernel void refit(__global const float4 *boxes /* lo, hi per triangle (bounds.cl) */,
                     __global const int *prim_order, __global float4 *nodes,
@@ -62,8 +83,14 @@ __kernel void refit(__global const float4 *boxes /* lo, hi per triangle (bounds.
         load_box_volatile(node_floats, node, &lo, &hi);
         for (;;) {
             const int p = parent[node];
-            if (p < 0 || !second_arrival(arrivals, p)) break;
+            if (p < 0) break;
             const int left = node_words[8 * p + 3];
+#if KARRAS_RANGES
+            if (inside_chunk(node_words, p, first, last)) {
+                if (left == node) break;
+            } else
+#endif
+            if (!second_arrival(arrivals, p)) break;
             const int sibling = left == node ? node_words[8 * p + 7] : left;
             float3 slo, shi;
             load_box_volatile(node_floats, sibling, &slo, &shi);

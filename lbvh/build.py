@@ -162,7 +162,8 @@ def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl
     prim_order = result.values
 
     arrivals = mem.alloc(4 * (2 * n - 1), scratch=True)
-    events["refit"] += refit_from_boxes(ctx, boxes, prim_order, nodes, parent, arrivals, n, 2 * n - 1)
+    events["refit"] += refit_from_boxes(ctx, boxes, prim_order, nodes, parent, arrivals, n, 2 * n - 1,
+                                        karras_ranges=True)
     mem.free(boxes)
     if treelet_rounds:
         cost = mem.alloc(4 * (2 * n - 1), scratch=True)

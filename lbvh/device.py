@@ -144,12 +144,16 @@ class Context:
         """
         count = max(int(count), 0)
         if self.is_cpu:
-            per_item = max(min_per_item, -(-count // self.work_items()))
-            items = max(1, -(-count // per_item))
+            return self.launch_chunks(count, max(min_per_item, -(-count // self.work_items())))
+        return self.launch_chunks(count, gpu_per_item)
+
+    def launch_chunks(self, count: int, per_item: int) -> Launch:
+        """Chunks of exactly ``per_item`` items (the last one shorter), on any device."""
+        count, per_item = max(int(count), 0), max(1, int(per_item))
+        items = max(1, -(-count // per_item))
+        if self.is_cpu:
             return Launch(count, per_item, items, 1)
         local = 64
-        per_item = max(1, int(gpu_per_item))
-        items = max(1, -(-count // per_item))
         return Launch(count, per_item, -(-items // local) * local, local)
 
     # -- scratch buffers kept between builds --------------------------------

@@ -26,20 +26,27 @@ def clear_arrivals(ctx: Context, arrivals: cl.Buffer, count: int) -> cl.Event:
 
 def refit_from_boxes(ctx: Context, boxes: cl.Buffer, prim_order: cl.Buffer, nodes: cl.Buffer,
                      parent: cl.Buffer, arrivals: cl.Buffer, num_prims: int, num_nodes: int,
-                     leaf_nodes: cl.Buffer | None = None, num_leaves: int | None = None
-                     ) -> list[cl.Event]:
+                     leaf_nodes: cl.Buffer | None = None, num_leaves: int | None = None,
+                     karras_ranges: bool = False, per_item: int | None = None) -> list[cl.Event]:
     """Recompute every node box in place from the triangle boxes (``2 * num_prims`` float4).
 
     Without ``leaf_nodes`` the leaves are nodes ``num_prims - 1 ..`` (Karras
     numbering); ``arrivals`` is scratch of ``4 * num_nodes`` bytes.
+    ``karras_ranges``: the tree comes straight from emit.cl, whose internal
+    nodes still hold the far end of their range where the box goes; the walks
+    then skip the atomics of nodes whose range lies in one work-item's chunk.
+    ``per_item`` forces the chunk length (tests); by default the launch picks it.
     """
     if num_leaves is None:
         num_leaves = num_prims if leaf_nodes is None else leaf_nodes.size // 4
+    if karras_ranges and leaf_nodes is not None:
+        raise ValueError("karras_ranges needs the Karras numbering of the leaves, not a leaf list")
     ev0 = clear_arrivals(ctx, arrivals, num_nodes)
-    launch = ctx.launch(num_leaves, min_per_item=256)
+    launch = (ctx.launch(num_leaves, min_per_item=256) if per_item is None
+              else ctx.launch_chunks(num_leaves, per_item))
     use_list = leaf_nodes is not None
     leaf_arg = leaf_nodes if use_list else arrivals  # not read by the kernel in that case
-    ev = ctx.kernel(KERNEL_FILE, "refit")(
+    ev = ctx.kernel(KERNEL_FILE, "refit", {"KARRAS_RANGES": int(karras_ranges)})(
         ctx.queue, (launch.global_size,), launch.local, boxes, prim_order, nodes, parent,
         arrivals, leaf_arg, np.int32(use_list), np.int32(num_prims - 1), np.int32(num_leaves),
         np.int32(launch.per_item))

@@ -15,9 +15,9 @@ from lbvh import device as dev
 from lbvh.bounds import (centroid_bounds_numpy, triangle_bounds, triangle_boxes_numpy,
                          triangle_centres_numpy)
 from lbvh.emit import emit_hierarchy, emit_hierarchy_python
-from lbvh.layout import NODE_DTYPE, children_of
+from lbvh.layout import NODE_DTYPE, children_of, node_depths
 from lbvh.morton import KEY_DTYPE, count_duplicates, morton_codes, morton_codes_numpy
-from lbvh.refit import refit_boxes, refit_numpy
+from lbvh.refit import refit_boxes, refit_from_boxes, refit_numpy
 from lbvh.sort import LOCAL_BITS, MSD_MIN_KEYS, digit_shifts, msd_plan, radix_sort, radix_sort_numpy
 
 
@@ -182,6 +182,26 @@ def test_emission_matches_serial_karras(ctx, key_bits, kind, n):
     assert np.array_equal(parent, parent_py)
     leaves = nodes[n - 1:]
     assert np.array_equal(leaves["a"], np.arange(n)) and np.all(leaves["b"] == -1)
+    # the far end of each internal node's range of slots, left for the build's refit
+    first, last = slot_ranges(children, parent_py, n)
+    far = nodes["lower"][: n - 1, 0].view(np.int32)
+    ends = np.arange(n - 1)
+    assert np.all((first[: n - 1] == ends) | (last[: n - 1] == ends))
+    assert np.array_equal(far, np.where(first[: n - 1] == ends, last[: n - 1], first[: n - 1]))
+
+
+def slot_ranges(children, parent, n):
+    """First and last slot under each node of a Karras-numbered tree, from its links."""
+    depth = node_depths(parent, 0 if n > 1 else 0)
+    first = np.full(2 * n - 1, -1, np.int64)
+    last = np.full(2 * n - 1, -1, np.int64)
+    first[n - 1:] = last[n - 1:] = np.arange(n)
+    internal = np.arange(n - 1)
+    for level in range(int(depth.max()), -1, -1):
+        at = internal[depth[internal] == level]
+        first[at] = first[children[at, 0]]
+        last[at] = last[children[at, 1]]
+    return first, last
 
 
 def test_single_key_emits_one_leaf(ctx):
@@ -213,6 +233,34 @@ def test_device_refit_is_bit_identical_to_serial_refit(ctx, scene):
     lower, upper = refit_numpy(bvh.nodes, bvh.parent, bvh.root, bvh.prim_order, moved, f)
     assert np.array_equal(bvh.lower, lower) and np.array_equal(bvh.upper, upper)
     bvh.validate()
+
+
+@pytest.mark.parametrize("per_item", [1, 2, 3, 64, 1000])
+@pytest.mark.parametrize("scene", ["teapot", "same_point"])
+def test_build_refit_is_bit_identical_for_any_chunk_length(ctx, scene, per_item):
+    """The build's refit skips the atomics of nodes inside one chunk (KARRAS_RANGES):
+    whichever way the leaves are cut into chunks, the boxes are the serial refit's."""
+    if scene == "same_point":  # every code equal: the tree follows the index tie-break
+        v, f = np.full((3, 3), 7.5, np.float32), np.tile(np.arange(3, dtype=np.uint32), (3000, 1))
+    else:
+        v, f = MESHES[scene]()
+    n = len(f)
+    mem = dev.MemoryTracker(ctx)
+    vb, fb = upload(ctx, v, f)
+    boxes, box, _ = triangle_bounds(ctx, mem, vb, fb, n)
+    keys, values, _ = morton_codes(ctx, mem, boxes, box, n, 32)
+    result = radix_sort(ctx, mem, keys, values, n, 32)
+    nodes, parent, _ = emit_hierarchy(ctx, mem, result.keys, n, 32)
+    arrivals = mem.alloc(4 * (2 * n - 1))
+    refit_from_boxes(ctx, boxes, result.values, nodes, parent, arrivals, n, 2 * n - 1,
+                     karras_ranges=True, per_item=per_item)
+    tree = dev.from_device(ctx, nodes, NODE_DTYPE, (2 * n - 1,))
+    parents = read(ctx, parent, np.int32, 2 * n - 1)
+    order = read(ctx, result.values, np.int32, n)
+    lower, upper = refit_numpy(tree, parents, 0, order, v, f)
+    assert np.array_equal(tree["lower"], lower) and np.array_equal(tree["upper"], upper)
+    assert per_item < n  # chunk boundaries are crossed
+    mem.close()
 
 
 def test_refit_of_a_host_tree_with_multi_triangle_leaves(ctx):
