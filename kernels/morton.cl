@@ -8,39 +8,47 @@
  */
 #include "common.h"
 
+/* The kernel computes LANES codes at once in explicit vector types: PoCL
+ * does not vectorise the loop over a work-item's chunk by itself, and the
+ * vector form is 2.7x (30-bit) to 3.9x (63-bit) faster on its CPU device. Each
+ * lane does exactly the float operations of one scalar code. */
+#define LANES 8
 #if KEY_BITS == 64
 typedef ulong key_t;
+typedef ulong8 keys_t;
 #define AXIS_BITS 21
 #else
 typedef uint key_t;
+typedef uint8 keys_t;
 #define AXIS_BITS 10
 #endif
 #define AXIS_CELLS ((float)(1 << AXIS_BITS))
 #define AXIS_MAX ((float)((1 << AXIS_BITS) - 1))
 
-/* Quantise c in [lo, hi] to a cell index in [0, 2^B - 1].
+/* Quantise c in [lo, hi] to a cell index in [0, 2^B - 1], lane by lane.
  * A zero-extent axis maps to cell 0 (no division by zero, no NaN); an extent
  * that overflows float32 is measured on halved values; the result is clamped
- * before the cast because converting NaN or out-of-range floats to integers is
- * undefined in C. The clamp is written so that a NaN lands in cell 0. */
-inline uint quantise(float c, float lo, float hi) {
+ * before the conversion because converting NaN or out-of-range floats to
+ * integers is undefined in C. The clamp is written so that a NaN lands in
+ * cell 0. */
+inline uint8 quantise(float8 c, float lo, float hi) {
     float extent = hi - lo;
-    float offset = c - lo;
+    float8 offset = c - lo;
     if (isinf(extent)) {
         extent = hi * 0.5f - lo * 0.5f;
         offset = c * 0.5f - lo * 0.5f;
     }
-    float t = extent > 0.0f ? offset / extent : 0.0f;
-    float q = t * AXIS_CELLS;
-    q = q > 0.0f ? q : 0.0f;  /* NaN compares false: 0 */
-    q = q < AXIS_MAX ? q : AXIS_MAX;
-    return (uint)q;
+    const float8 t = extent > 0.0f ? offset / extent : (float8)(0.0f);
+    float8 q = t * AXIS_CELLS;
+    q = select((float8)(0.0f), q, q > 0.0f);  /* NaN compares false: 0 */
+    q = select((float8)(AXIS_MAX), q, q < AXIS_MAX);
+    return convert_uint8(q);
 }
 
 #if KEY_BITS == 64
-/* Spread the low 21 bits of v so that two zero bits follow each bit. */
-inline ulong spread_bits(ulong v) {
-    v &= 0x1fffffUL;
+/* Spread the low 21 bits of each lane so that two zero bits follow each bit. */
+inline keys_t spread_bits(uint8 u) {
+    keys_t v = convert_ulong8(u) & 0x1fffffUL;
     v = (v | (v << 32)) & 0x1f00000000ffffUL;
     v = (v | (v << 16)) & 0x1f0000ff0000ffUL;
     v = (v | (v << 8)) & 0x100f00f00f00f00fUL;
@@ -49,8 +57,8 @@ inline ulong spread_bits(ulong v) {
     return v;
 }
 #else
-/* Spread the low 10 bits of v so that two zero bits follow each bit. */
-inline uint spread_bits(uint v) {
+/* Spread the low 10 bits of each lane so that two zero bits follow each bit. */
+inline keys_t spread_bits(uint8 v) {
     v &= 0x3ffu;
     v = (v | (v << 16)) & 0x030000ffu;
     v = (v | (v << 8)) & 0x0300f00fu;
@@ -60,6 +68,21 @@ inline uint spread_bits(uint v) {
 }
 #endif
 
+/* Codes of the triangles whose boxes are b0 .. b7 (lo.xyzw, hi.xyzw each). */
+inline keys_t codes_of(float8 b0, float8 b1, float8 b2, float8 b3, float8 b4, float8 b5,
+                       float8 b6, float8 b7, float4 blo, float4 bhi) {
+    const float8 cx = (float8)(b0.s0, b1.s0, b2.s0, b3.s0, b4.s0, b5.s0, b6.s0, b7.s0) * 0.5f
+                    + (float8)(b0.s4, b1.s4, b2.s4, b3.s4, b4.s4, b5.s4, b6.s4, b7.s4) * 0.5f;
+    const float8 cy = (float8)(b0.s1, b1.s1, b2.s1, b3.s1, b4.s1, b5.s1, b6.s1, b7.s1) * 0.5f
+                    + (float8)(b0.s5, b1.s5, b2.s5, b3.s5, b4.s5, b5.s5, b6.s5, b7.s5) * 0.5f;
+    const float8 cz = (float8)(b0.s2, b1.s2, b2.s2, b3.s2, b4.s2, b5.s2, b6.s2, b7.s2) * 0.5f
+                    + (float8)(b0.s6, b1.s6, b2.s6, b3.s6, b4.s6, b5.s6, b6.s6, b7.s6) * 0.5f;
+    return (spread_bits(quantise(cx, blo.x, bhi.x)) << 2)
+         | (spread_bits(quantise(cy, blo.y, bhi.y)) << 1)
+         | spread_bits(quantise(cz, blo.z, bhi.z));
+}
+
+/* The centroid is lo/2 + hi/2 (box_centre in common.h), which cannot overflow. */
 __kernel void morton_codes(__global const float4 *boxes /* lo, hi per triangle */,
                            __global const float4 *centroid_box /* lo, hi */,
                            const int n, const int per_item,
@@ -68,12 +91,20 @@ __kernel void morton_codes(__global const float4 *boxes /* lo, hi per triangle *
     const int first = chunk_first(gid, per_item, n);
     const int last = chunk_last(gid, per_item, n);
     const float4 blo = centroid_box[0], bhi = centroid_box[1];
-    for (int t = first; t < last; ++t) {
-        float3 c = box_centre(boxes[2 * t].xyz, boxes[2 * t + 1].xyz);
-        key_t x = (key_t)quantise(c.x, blo.x, bhi.x);
-        key_t y = (key_t)quantise(c.y, blo.y, bhi.y);
-        key_t z = (key_t)quantise(c.z, blo.z, bhi.z);
-        keys[t] = (spread_bits(x) << 2) | (spread_bits(y) << 1) | spread_bits(z);
+    __global const float8 *box8 = (__global const float8 *)boxes;
+    int t = first;
+    /* Whole groups of LANES triangles with aligned vector stores ... */
+    for (; t + LANES <= last && t % LANES == 0; t += LANES) {
+        *(__global keys_t *)(keys + t) = codes_of(
+            box8[t], box8[t + 1], box8[t + 2], box8[t + 3], box8[t + 4], box8[t + 5],
+            box8[t + 6], box8[t + 7], blo, bhi);
+        *(__global uint8 *)(values + t) = (uint)t + (uint8)(0, 1, 2, 3, 4, 5, 6, 7);
+    }
+    /* ... and one at a time where the chunk is short or not aligned (a GPU's
+     * chunk of one): lane 0 of a group whose lanes all hold triangle t. */
+    for (; t < last; ++t) {
+        const float8 b = box8[t];
+        keys[t] = codes_of(b, b, b, b, b, b, b, b, blo, bhi).s0;
         values[t] = (uint)t;
     }
 }

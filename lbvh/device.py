@@ -136,15 +136,18 @@ class Context:
         """How many heavy work-items to run at once: a few per core on a CPU."""
         return self.compute_units * 8 if self.is_cpu else self.compute_units * 2048
 
-    def launch(self, count: int, min_per_item: int = 1024, gpu_per_item: int = 1) -> Launch:
+    def launch(self, count: int, min_per_item: int = 1024, gpu_per_item: int = 1,
+               multiple: int = 1) -> Launch:
         """Cut ``count`` items into contiguous chunks, one chunk per work-item.
 
-        On a CPU a chunk holds at least ``min_per_item`` items and there are a
-        few chunks per core; on a GPU a chunk holds ``gpu_per_item`` items.
+        On a CPU a chunk holds at least ``min_per_item`` items, a multiple of
+        ``multiple`` (a kernel's vector width), and there are a few chunks per
+        core; on a GPU a chunk holds ``gpu_per_item`` items.
         """
         count = max(int(count), 0)
         if self.is_cpu:
-            return self.launch_chunks(count, max(min_per_item, -(-count // self.work_items())))
+            per_item = max(min_per_item, -(-count // self.work_items()))
+            return self.launch_chunks(count, -(-per_item // multiple) * multiple)
         return self.launch_chunks(count, gpu_per_item)
 
     def launch_chunks(self, count: int, per_item: int) -> Launch:

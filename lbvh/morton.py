@@ -12,6 +12,8 @@ import pyopencl as cl
 from .device import Context, MemoryTracker
 
 KERNEL_FILE = "morton.cl"
+#: codes per vector in morton.cl (LANES): CPU chunks are whole multiples of it
+LANES = 8
 
 #: bits of code per axis for each key width
 AXIS_BITS = {32: 10, 64: 21}
@@ -32,12 +34,16 @@ def code_bits(key_bits: int) -> int:
 
 
 def morton_codes(ctx: Context, mem: MemoryTracker, boxes: cl.Buffer,
-                 centroid_box: cl.Buffer, n: int, key_bits: int
+                 centroid_box: cl.Buffer, n: int, key_bits: int, per_item: int | None = None
                  ) -> tuple[cl.Buffer, cl.Buffer, list[cl.Event]]:
-    """Device keys (``uint32`` or ``uint64``) and values (triangle index) for ``n`` triangle boxes."""
+    """Device keys (``uint32`` or ``uint64``) and values (triangle index) for ``n`` triangle boxes.
+
+    ``per_item`` forces the chunk length (tests); by default the launch picks it.
+    """
     keys = mem.alloc(n * KEY_DTYPE[key_bits].itemsize, scratch=True)
     values = mem.alloc(n * 4)
-    launch = ctx.launch(n)
+    launch = (ctx.launch(n, multiple=LANES) if per_item is None
+              else ctx.launch_chunks(n, per_item))
     ev = ctx.kernel(KERNEL_FILE, "morton_codes", {"KEY_BITS": key_bits})(
         ctx.queue, (launch.global_size,), launch.local, boxes, centroid_box,
         np.int32(n), np.int32(launch.per_item), keys, values)

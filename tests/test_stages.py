@@ -29,11 +29,11 @@ def read(ctx, buf, dtype, n):
     return dev.from_device(ctx, buf, dtype, (n,))
 
 
-def device_codes(ctx, v, f, key_bits):
+def device_codes(ctx, v, f, key_bits, per_item=None):
     mem = dev.MemoryTracker(ctx)
     vb, fb = upload(ctx, v, f)
     boxes, box, _ = triangle_bounds(ctx, mem, vb, fb, len(f))
-    keys, values, _ = morton_codes(ctx, mem, boxes, box, len(f), key_bits)
+    keys, values, _ = morton_codes(ctx, mem, boxes, box, len(f), key_bits, per_item)
     tri_boxes = dev.from_device(ctx, boxes, np.float32, (len(f), 2, 4))[:, :, :3]
     lo, hi = triangle_boxes_numpy(v, f)
     assert np.array_equal(tri_boxes[:, 0], lo) and np.array_equal(tri_boxes[:, 1], hi)
@@ -56,9 +56,11 @@ MESHES = {
 
 @pytest.mark.parametrize("name", sorted(MESHES))
 @pytest.mark.parametrize("key_bits", [32, 64])
-def test_bounds_and_morton_codes_match_numpy_exactly(ctx, name, key_bits):
+@pytest.mark.parametrize("per_item", [None, 1, 13])
+def test_bounds_and_morton_codes_match_numpy_exactly(ctx, name, key_bits, per_item):
+    """Chunks of 8 codes at a time (the CPU's), one at a time (a GPU's), misaligned ones."""
     v, f = MESHES[name]()
-    bounds, keys, values = device_codes(ctx, v, f, key_bits)
+    bounds, keys, values = device_codes(ctx, v, f, key_bits, per_item)
     assert np.array_equal(bounds, centroid_bounds_numpy(v, f))
     expected = morton_codes_numpy(triangle_centres_numpy(v, f), bounds, key_bits)
     assert keys.dtype == expected.dtype
