@@ -118,7 +118,6 @@ class Context:
     _kernels: dict = field(init=False, default_factory=dict)
     _scratch: dict = field(init=False, default_factory=dict)
     _recycled: dict = field(init=False, default_factory=dict)
-    _first_working: dict = field(init=False, default_factory=dict)
     # Re-entrant: a tree's finalizer (give_back, run by the garbage collector at any
     # allocation) may fire while this thread is inside the pool.
     _lock: threading.RLock = field(init=False, default_factory=threading.RLock)
@@ -231,27 +230,6 @@ class Context:
             knl = getattr(self.program(filename, defines), name)
             self._kernels[key] = knl
         return knl
-
-    def first_working_kernel(self, filename: str, name: str,
-                             choices: list[dict[str, int | str]]) -> cl.Kernel:
-        """The kernel built with the first of ``choices`` (-D defines) that this device
-        compiles and links, remembered per context. For optional compiler features:
-        the last choice must be plain OpenCL 1.2, whose failure is raised."""
-        key = (filename, name, tuple(tuple(sorted(c.items())) for c in choices))
-        chosen = self._first_working.get(key)
-        if chosen is not None:
-            return self.kernel(filename, name, chosen)
-        for defines in choices[:-1]:
-            try:
-                knl = self.kernel(filename, name, defines)
-            except (DeviceError, cl.Error, AttributeError):
-                # AttributeError: pyopencl's answer when the program built but the
-                # kernel could not be created (an unresolved symbol, say).
-                continue
-            self._first_working[key] = defines
-            return knl
-        self._first_working[key] = choices[-1]
-        return self.kernel(filename, name, choices[-1])
 
     def compiled_programs(self) -> int:
         """Number of programs compiled in this context so far (for tests of the cache)."""

@@ -13,21 +13,24 @@ from .device import Context, MemoryTracker
 from .layout import NODE_DTYPE
 
 KERNEL_FILE = "emit.cl"
+#: internal nodes per vector in emit.cl (LANES)
+LANES = 8
 
 
 def emit_hierarchy(ctx: Context, mem: MemoryTracker, sorted_keys: cl.Buffer, n: int,
-                   key_bits: int) -> tuple[cl.Buffer, cl.Buffer, list[cl.Event]]:
-    """Device node records (boxes not yet set) and parent links for ``2n - 1`` nodes."""
+                   key_bits: int, per_item: int | None = None
+                   ) -> tuple[cl.Buffer, cl.Buffer, list[cl.Event]]:
+    """Device node records (boxes not yet set) and parent links for ``2n - 1`` nodes.
+
+    ``per_item`` forces the chunk length (tests); by default the launch picks
+    whole groups of ``LANES`` nodes, one group per work-item on a GPU.
+    """
     num_nodes = 2 * n - 1
     nodes = mem.alloc(num_nodes * NODE_DTYPE.itemsize)
     parent = mem.alloc(num_nodes * 4)
-    launch = ctx.launch(n, min_per_item=256)
-    # clang's clz builtin where the compiler has it (PoCL: a quarter of the kernel's
-    # time), else OpenCL's clz (Oclgrind, for one, cannot link the builtin).
-    knl = ctx.first_working_kernel(KERNEL_FILE, "emit_hierarchy",
-                                   [{"KEY_BITS": key_bits, "CLZ_BUILTIN": 1},
-                                    {"KEY_BITS": key_bits, "CLZ_BUILTIN": 0}])
-    ev = knl(
+    launch = (ctx.launch(n, min_per_item=256, gpu_per_item=LANES, multiple=LANES)
+              if per_item is None else ctx.launch_chunks(n, per_item))
+    ev = ctx.kernel(KERNEL_FILE, "emit_hierarchy", {"KEY_BITS": key_bits})(
         ctx.queue, (launch.global_size,), launch.local, sorted_keys, np.int32(n),
         np.int32(launch.per_item), nodes, parent)
     return nodes, parent, [ev]

@@ -209,26 +209,3 @@ def test_a_dropped_trees_buffers_serve_the_next_build(ctx):
     lbvh.build(*random_soup(300, seed=1)).validate()   # other sizes: fresh buffers
     ctx.trim_scratch()
     assert ctx.scratch_bytes() == 0
-
-
-def test_an_optional_compiler_feature_falls_back_to_plain_opencl(ctx):
-    broken = {"KEY_BITS": "no_such_name", "CLZ_BUILTIN": 0}   # does not compile
-    plain = {"KEY_BITS": 32, "CLZ_BUILTIN": 0}
-    knl = ctx.first_working_kernel("emit.cl", "emit_hierarchy", [broken, plain])
-    assert knl is ctx.kernel("emit.cl", "emit_hierarchy", plain)
-    # The choice is remembered: no second attempt at the broken build.
-    compiled = ctx.compiled_programs()
-    assert ctx.first_working_kernel("emit.cl", "emit_hierarchy", [broken, plain]) is knl
-    assert ctx.compiled_programs() == compiled
-    assert ctx.first_working_kernel("emit.cl", "emit_hierarchy", [plain, broken]) is knl
-    # The last choice is plain OpenCL: its failure is the user's error, with the log.
-    with pytest.raises(lbvh.DeviceError, match="emit.cl"):
-        ctx.first_working_kernel("emit.cl", "emit_hierarchy", [broken])
-
-
-def test_emission_uses_the_clz_builtin_where_the_compiler_has_it(ctx):
-    lbvh.build(*random_soup(100), device=ctx)
-    chosen = [defines for (name, *_), defines in ctx._first_working.items() if name == "emit.cl"]
-    # PoCL is clang: the builtin links; Oclgrind's test (test_second_implementation)
-    # covers the fallback.
-    assert {"KEY_BITS": 32, "CLZ_BUILTIN": 1} in chosen

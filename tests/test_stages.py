@@ -154,11 +154,11 @@ def test_msd_plan():
     assert msd_plan(((1 << 11) - 1) << 40 | 1 << 35, MSD_MIN_KEYS, 11, True) == (40, [30])
 
 
-def emitted_tree(ctx, sorted_keys, key_bits):
+def emitted_tree(ctx, sorted_keys, key_bits, per_item=None):
     n = len(sorted_keys)
     mem = dev.MemoryTracker(ctx)
     kb = dev.to_device(ctx, sorted_keys)
-    nodes, parent, _ = emit_hierarchy(ctx, mem, kb, n, key_bits)
+    nodes, parent, _ = emit_hierarchy(ctx, mem, kb, n, key_bits, per_item)
     return dev.from_device(ctx, nodes, NODE_DTYPE, (2 * n - 1,)), read(ctx, parent, np.int32, 2 * n - 1)
 
 
@@ -166,19 +166,24 @@ KEY_SETS = {
     "distinct": lambda rng, n, top: np.unique(rng.integers(0, 1 << top, n * 2, dtype=np.uint64))[:n],
     "many_equal": lambda rng, n, top: np.sort(rng.integers(0, 8, n, dtype=np.uint64)),
     "all_equal": lambda rng, n, top: np.full(n, 12345, np.uint64),
+    "full_width": lambda rng, n, top: np.unique(rng.integers(0, 1 << (32 if top <= 32 else 64), n * 2,
+                                                            dtype=np.uint64))[-n:],
     "runs": lambda rng, n, top: np.sort(rng.integers(0, 1 << top, n // 50 + 1, dtype=np.uint64)[rng.integers(0, n // 50 + 1, n)]),
 }
 
 
 @pytest.mark.parametrize("key_bits", [32, 64])
 @pytest.mark.parametrize("kind", sorted(KEY_SETS))
-@pytest.mark.parametrize("n", [2, 3, 17, 1025, 3000])
-def test_emission_matches_serial_karras(ctx, key_bits, kind, n):
+@pytest.mark.parametrize("n, per_item", [(2, None), (3, None), (17, None), (1025, None),
+                                         (3000, None), (3000, 1), (1025, 13), (17, 9)])
+def test_emission_matches_serial_karras(ctx, key_bits, kind, n, per_item):
+    """Groups of eight nodes (the CPU's), one group per work-item (a GPU's), and chunks
+    that cut the groups short or start them unaligned."""
     rng = np.random.default_rng(n)
     top = 30 if key_bits == 32 else 63
     keys = np.sort(KEY_SETS[kind](rng, n, top)).astype(KEY_DTYPE[key_bits])
     n = len(keys)
-    nodes, parent = emitted_tree(ctx, keys, key_bits)
+    nodes, parent = emitted_tree(ctx, keys, key_bits, per_item)
     children, parent_py = emit_hierarchy_python(keys, key_bits)
     assert np.array_equal(children_of(nodes), children)
     assert np.array_equal(parent, parent_py)
