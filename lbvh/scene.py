@@ -54,13 +54,48 @@ class Scene:
     camera: Camera | None = None
 
 
+def _require_file(path: Path) -> None:
+    if path.is_dir():
+        raise ValueError(f"{path}: a folder, not a file")
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file")
+
+
+def _obj_index_problem(path: Path) -> str | None:
+    """The first OBJ face that names a vertex the file does not define, or None.
+
+    Only run after trimesh failed (a plain scan of the text): trimesh reports
+    such a face as a bare IndexError.
+    """
+    try:
+        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        return None
+    total = sum(1 for line in lines if line.startswith("v "))
+    seen = 0
+    for number, line in enumerate(lines, 1):
+        if line.startswith("v "):
+            seen += 1
+        elif line.startswith("f "):
+            for item in line.split()[1:]:
+                try:
+                    index = int(item.split("/")[0])
+                except ValueError:
+                    continue
+                # 1-based; negative counts back from the last vertex defined so far
+                if not (1 <= index <= total if index > 0 else 1 <= seen + index + 1 <= seen):
+                    return (f"line {number}: face vertex index {index} is outside the "
+                            f"{total if index > 0 else seen} vertices "
+                            f"{'in the file' if index > 0 else 'defined before it'}")
+    return None
+
+
 def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Read a mesh file with trimesh and return validated ``(vertices, faces)``."""
     import trimesh
 
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: no such file")
+    _require_file(path)
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise ValueError(f"{path}: unknown mesh format {path.suffix!r} "
                          f"(expected one of {', '.join(sorted(MESH_SUFFIXES))})")
@@ -73,6 +108,9 @@ def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
                          f"(trimesh could not parse it; it wanted the optional module "
                          f"{exc.name!r} for a last try)") from None
     except Exception as exc:  # trimesh raises many kinds on a broken file
+        problem = _obj_index_problem(path) if path.suffix.lower() == ".obj" else None
+        if problem:
+            raise ValueError(f"{path}: {problem}") from None
         raise ValueError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     if isinstance(loaded, trimesh.Scene):
         if not loaded.geometry:
@@ -106,8 +144,7 @@ def load_scene(path: str | os.PathLike) -> Scene:
 def load_scene_description(path: str | os.PathLike) -> Scene:
     """Load a ``.json`` scene description (format in the module docstring)."""
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: no such file")
+    _require_file(path)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as exc:
