@@ -28,6 +28,18 @@
  */
 #include "common.h"
 
+/* Leaf boxes are gathered in slot order, randomly in memory when the mesh's
+ * triangles are not in spatial order: the box PREFETCH_AHEAD slots on is
+ * prefetched (1.2-1.5x on a random soup of 1M triangles). OpenCL's prefetch()
+ * does nothing on PoCL; CLANG_PREFETCH=1, which the host sets where the
+ * compiler is clang (PoCL), uses clang's builtin instead. */
+#define PREFETCH_AHEAD 32
+#if CLANG_PREFETCH
+#define PREFETCH_BOX(p) __builtin_prefetch(p)
+#else
+#define PREFETCH_BOX(p) prefetch(p, 2)
+#endif
+
 inline void store_box(__global float *node_floats, int node, float3 lo, float3 hi) {
     store_float3(node_floats + 8 * node, lo);
     store_float3(node_floats + 8 * node + 4, hi);
@@ -68,6 +80,8 @@ __kernel void refit(__global const float4 *boxes /* lo, hi per triangle (bounds.
         const int node = use_leaf_list ? leaf_nodes[k] : leaf_first + k;
         const int slot = node_words[8 * node + 3];
         const int count = -node_words[8 * node + 7];
+        if (slot + PREFETCH_AHEAD <= leaf_first)  /* leaf_first = last slot */
+            PREFETCH_BOX(boxes + 2 * prim_order[slot + PREFETCH_AHEAD]);
         const int t0 = prim_order[slot];
         float3 lo = boxes[2 * t0].xyz, hi = boxes[2 * t0 + 1].xyz;
         for (int s = 1; s < count; ++s) {

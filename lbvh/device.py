@@ -127,6 +127,8 @@ class Context:
         self.queue = cl.CommandQueue(
             self.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
         self.is_cpu = bool(self.device.type & cl.device_type.CPU)
+        # PoCL compiles kernels with clang: kernels may use clang builtins behind a define
+        self.compiler_is_clang = self.device.platform.name.strip().lower() == _POCL_PLATFORM
         self.compute_units = max(1, int(self.device.max_compute_units))
         self.name = describe(self.device)
 

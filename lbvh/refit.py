@@ -46,7 +46,8 @@ def refit_from_boxes(ctx: Context, boxes: cl.Buffer, prim_order: cl.Buffer, node
               else ctx.launch_chunks(num_leaves, per_item))
     use_list = leaf_nodes is not None
     leaf_arg = leaf_nodes if use_list else arrivals  # not read by the kernel in that case
-    ev = ctx.kernel(KERNEL_FILE, "refit", {"KARRAS_RANGES": int(karras_ranges)})(
+    defines = {"KARRAS_RANGES": int(karras_ranges), "CLANG_PREFETCH": int(ctx.compiler_is_clang)}
+    ev = ctx.kernel(KERNEL_FILE, "refit", defines)(
         ctx.queue, (launch.global_size,), launch.local, boxes, prim_order, nodes, parent,
         arrivals, leaf_arg, np.int32(use_list), np.int32(num_prims - 1), np.int32(num_leaves),
         np.int32(launch.per_item))

@@ -270,6 +270,21 @@ def test_build_refit_is_bit_identical_for_any_chunk_length(ctx, scene, per_item)
     mem.close()
 
 
+def test_refit_with_opencl_prefetch_equals_the_clang_builtin(ctx, monkeypatch):
+    """CLANG_PREFETCH=0 (OpenCL's prefetch, for non-clang compilers) builds and gives
+    the same boxes; so does the builtin that PoCL gets."""
+    import lbvh
+    v, f = MESHES["soup"]()
+    trees = []
+    for clang in (True, False):
+        monkeypatch.setattr(ctx, "compiler_is_clang", clang)
+        bvh = lbvh.build(v, f, device=ctx)
+        lower, upper = refit_numpy(bvh.nodes, bvh.parent, bvh.root, bvh.prim_order, v, f)
+        assert np.array_equal(bvh.lower, lower) and np.array_equal(bvh.upper, upper)
+        trees.append(bvh.nodes)
+    assert np.array_equal(trees[0].view(np.int32), trees[1].view(np.int32))
+
+
 def test_refit_of_a_host_tree_with_multi_triangle_leaves(ctx):
     """The refit kernel also serves trees whose leaves are listed (other builders)."""
     import lbvh
