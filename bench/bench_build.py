@@ -520,16 +520,21 @@ def summarise(case: Case, samples: Samples, quality: dict, checks: dict, width: 
         "checks": checks,
         "floor": {"bytes": fb, "copy_seconds": copy, "copy_bandwidth_bytes_per_s": copy_bw,
                   "phase_bytes": traffic, "phase_over_streaming": vs_floor},
-        "ratios": ratios(med),
+        "ratios": ratios(samples.values),
     }
     return out
 
 
-def ratios(med: dict[str, float]) -> dict[str, float | None]:
+def ratios(values: dict[str, list[float]]) -> dict[str, float | None]:
+    """Median over rounds of a / b measured in the same round.
+
+    A round measures everything about one mesh within a second or two, so a
+    slow stretch of the shared machine tends to slow both sides of a ratio;
+    the peers run in the first rounds only, and the pairs stop with them.
+    """
     def ratio(a: str, b: str) -> float | None:
-        if a in med and b in med and med[b] > 0:
-            return med[a] / med[b]
-        return None
+        pairs = [x / y for x, y in zip(values.get(a, []), values.get(b, [])) if y > 0]
+        return median(pairs) if pairs else None
     return {
         "embree_build_over_lbvh_wall": ratio("embree_build", "build_wall"),
         "numpy_argsort_over_our_sort_wall": ratio("numpy_argsort", "our_sort_wall"),
