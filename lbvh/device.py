@@ -352,14 +352,16 @@ class MemoryTracker:
         self.peak = max(self.peak, self.live)
         return buf
 
-    def free(self, *bufs: cl.Buffer) -> None:
+    def free(self, *bufs: cl.Buffer, to_pool: bool = False) -> None:
+        """Give buffers back: scratch to the pool, others released unless ``to_pool``
+        (a caller about to allocate the same sizes again keeps their pages mapped)."""
         for buf in bufs:
             entry = self._sizes.pop(id(buf), None)
             if entry is None:
                 continue
             nbytes, scratch = entry
             self.live -= nbytes
-            if scratch:
+            if scratch or to_pool:
                 self.ctx.give_scratch(buf, nbytes)
             else:
                 buf.release()

@@ -11,6 +11,7 @@ import pytest
 
 import lbvh
 from conftest import REPO, random_soup, shared_mesh, shipped_mesh
+from lbvh import device as dev
 from lbvh.layout import NODE_DTYPE
 
 
@@ -209,3 +210,16 @@ def test_a_dropped_trees_buffers_serve_the_next_build(ctx):
     lbvh.build(*random_soup(300, seed=1)).validate()   # other sizes: fresh buffers
     ctx.trim_scratch()
     assert ctx.scratch_bytes() == 0
+
+
+def test_free_to_pool_hands_a_buffer_to_the_next_allocation(ctx):
+    ctx.trim_scratch()
+    mem = dev.MemoryTracker(ctx)
+    kept, dropped = mem.alloc(4096 * 3), mem.alloc(4096 * 5)
+    mem.free(kept, to_pool=True)
+    mem.free(dropped)
+    assert mem.live == 0
+    again = dev.MemoryTracker(ctx)
+    assert again.alloc(4096 * 3).int_ptr == kept.int_ptr      # the same buffer, pages mapped
+    assert ctx.take_scratch(4096 * 5) is None                 # released, not pooled
+    ctx.trim_scratch()
