@@ -53,10 +53,17 @@ __kernel void digit_histogram(__global const key_t *keys, const int n, const int
     if (gid >= num_chunks) return;
     const int first = chunk_first(gid, per_item, n);
     const int last = chunk_last(gid, per_item, n);
-    uint hist[RADIX];
-    for (int d = 0; d < RADIX; ++d) hist[d] = 0;
-    for (int i = first; i < last; ++i) hist[digit_of(keys[i], shift)]++;
-    for (int d = 0; d < RADIX; ++d) counts[d * num_chunks + gid] = hist[d];
+    /* Two histograms, for even and odd keys: runs of equal digits (coherent
+     * meshes) would otherwise chain every increment on the previous one. */
+    uint hist[RADIX], hist_odd[RADIX];
+    for (int d = 0; d < RADIX; ++d) hist[d] = hist_odd[d] = 0;
+    int i = first;
+    for (; i + 1 < last; i += 2) {
+        hist[digit_of(keys[i], shift)]++;
+        hist_odd[digit_of(keys[i + 1], shift)]++;
+    }
+    if (i < last) hist[digit_of(keys[i], shift)]++;
+    for (int d = 0; d < RADIX; ++d) counts[d * num_chunks + gid] = hist[d] + hist_odd[d];
 }
 
 __kernel void scan_counts(__global uint *counts, const int num_chunks,
