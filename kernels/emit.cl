@@ -140,7 +140,7 @@ inline void emit_lanes(__global const key_t *keys, int n, int i0, int limit,
     } else {
         kc = gather(keys, i);
         ku = gather(keys, i + 1);
-        kd = gather(keys, (i - 1) & ~((i - 1) >> 31));
+        kd = gather(keys, (i - 1) & ~(i == 0));  /* slot 0 for node 0: masked below */
     }
     const prefix_t ki = concat(kc, i);
     const prefix_t up = xor_keys(ki, concat(ku, i + 1));
