@@ -2,36 +2,38 @@
  * lbvh/traverse.py.
  *
  * Two kernels:
- *   pack_pairs  rewrites any tree of the layout as child-pair records, once
- *               per tree (and after a refit): record r holds the boxes of both
- *               children of internal node r, so that a visit reads one 64-byte
- *               record instead of three 32-byte ones (Aila & Laine 2009,
- *               "Understanding the Efficiency of Ray Traversal on GPUs":
- *               child boxes stored in the parent).
- *   traverse    traces rays through the pair records.
+ *   order_faces  copies the faces in slot order, once per tree;
+ *   traverse     traces rays through the tree's wide records (kernels/wide.cl:
+ *                up to WIDTH children per node, their boxes in rows of WIDTH
+ *                floats, so that one vector slab test covers all children of
+ *                a node; Wald, Benthin, Boulos 2008), or through the tree's
+ *                own binary nodes (WIDE=0).
  *
  * A work-item traces the rays [chunk_first, chunk_last) one after the other
  * (the host gives every work-item one ray, in work-groups of 64, on PoCL as on
  * a GPU) with an explicit stack, in closest-hit or any-hit mode.
  *
- * Ordered traversal: of two children whose boxes the ray enters, the one with
- * the smaller entry distance is visited first; equal entries: the smaller exit
- * distance; equal again: the right child. The other is pushed with its entry
- * distance and dropped when popped behind the closest hit so far; a child
- * whose entry lies beyond the closest hit is not entered at all.
+ * Ordered traversal: of the children whose boxes the ray enters, the one with
+ * the smallest entry distance is visited first; equal entries: the smaller exit
+ * distance; equal again: the one further right. The others are pushed, the
+ * nearest last, each with its entry distance, and dropped when popped behind
+ * the closest hit so far; a child whose entry lies beyond the closest hit is
+ * not entered at all.
  *
  * Compile-time variants (-D), all optional:
  *   ANY_HIT=1        stop at the first hit in [tmin, tmax] (occlusion)
  *   COUNTERS=1       write per ray the nodes visited (the root, whose box is
- *                    always tested, plus every node descended into or popped)
- *                    and the triangles tested
+ *                    always tested, plus every node (a wide record, or a
+ *                    binary node with WIDE=0) or leaf descended into or
+ *                    popped) and the triangles tested
  *   TRIANGLE_TEST=0  watertight test of Woop, Benthin, Wald 2013 (default)
  *   TRIANGLE_TEST=1  Moller-Trumbore 1997 (faster, leaks through shared edges)
  *   STACK_SIZE=n     stack entries; a push beyond n sets FLAG_OVERFLOW and
  *                    drops that subtree (reported, never silent)
  *   SLAB_PAD=x       factor on the far distance of a box (Ize 2013)
  *   NO_FP64=1        leave out the double fallback of the watertight test
- *   PAIRS=0          read the tree's own nodes instead of the pair records
+ *   WIDE=0           read the tree's own nodes instead of the wide records
+ *   WIDTH=4 or 8     children per wide record (kernels/wide.cl), default 8
  *   RAY_ORDER=1      trace the rays in the order order[] gives (ray_order.cl)
  *
  * Rays come as four arrays: origins and directions (3 floats per ray), tmin
@@ -39,8 +41,9 @@
  * Results are four planes of `count` floats: t, u, v, as_float(prim), with
  * prim in the caller's original numbering, -1 and t = +inf for a miss. The
  * hit point is (1-u-v)*p0 + u*p1 + v*p2. The host rejects NaN and infinite
- * rays; the loop is bounded by the stack and by a visit limit of num_nodes,
- * so even a NaN ray or a cyclic tree terminates.
+ * rays; one with NaN that reaches the kernel anyway is flagged and not
+ * traced; the loop is bounded by the stack and by a visit limit of
+ * num_nodes, so even a cyclic tree terminates.
  */
 #include "common.h"
 
@@ -65,6 +68,7 @@
 
 #define FLAG_OVERFLOW 1    /* a push found the stack full: a subtree was skipped */
 #define FLAG_VISIT_LIMIT 2 /* more nodes visited than the tree has: not a tree */
+#define FLAG_NAN_RAY 4     /* NaN in the ray: not traced (the host API refuses such rays) */
 
 /* The double fallback of the watertight test where the device has doubles
  * (-DNO_FP64 leaves it out, to test the path of devices without them). */
@@ -302,73 +306,48 @@ inline int hit_triangle(__global const float *vertices, int i0, int i1, int i2, 
 }
 #endif
 
-/* Child-pair records: record r (64 bytes, four float4) is internal node r's
- * two children, left then right, each as (lower.xyz, as_float(x),
- * upper.xyz, as_float(y)): a leaf child keeps its node words (x = first slot,
- * y = -count < 0); an internal child gets x = its own record's index, y = 0.
- * Records are numbered by `rank` (the rank of a node among the internal
- * nodes, use_rank = 1) or by node index (use_rank = 0: the Karras numbering,
- * internal nodes first). A child index outside [0, num_nodes) is reported in
- * *bad_node (the least such parent), and its slot is left zero. */
-inline void pack_child(__global const float4 *nodes, int c, __global const int *rank,
-                       int use_rank, __global float4 *slot) {
-    const float4 lo = nodes[2 * c], hi = nodes[2 * c + 1];
-    const int y = as_int(hi.w);
-    const int internal = !node_is_leaf(y);
-    const int x = internal ? (use_rank ? rank[c] : c) : as_int(lo.w);
-    slot[0] = (float4)(lo.xyz, as_float(x));
-    slot[1] = (float4)(hi.xyz, as_float(internal ? 0 : y));
-}
-
-__kernel void pack_pairs(__global const float4 *nodes, const int num_nodes, const int per_item,
-                         __global const int *rank, const int use_rank,
-                         __global float4 *pairs, __global int *bad_node) {
-    const int gid = get_global_id(0);
-    const int first = chunk_first(gid, per_item, num_nodes);
-    const int last = chunk_last(gid, per_item, num_nodes);
-    __global const int *ni = (__global const int *)nodes;
-    for (int i = first; i < last; ++i) {
-        const int a = ni[8 * i + 3], b = ni[8 * i + 7];
-        if (node_is_leaf(b)) continue;
-        __global float4 *record = pairs + 4 * (use_rank ? rank[i] : i);
-        if ((uint)a >= (uint)num_nodes || (uint)b >= (uint)num_nodes) {
-            atomic_min(bad_node, i);
-            for (int k = 0; k < 4; ++k) record[k] = (float4)(0.0f);
-            continue;
-        }
-        pack_child(nodes, a, rank, use_rank, record);
-        pack_child(nodes, b, rank, use_rank, record + 2);
-    }
-}
-
-#ifndef PAIRS
-#define PAIRS 1
+#ifndef WIDE
+#define WIDE 1
+#endif
+#ifndef WIDTH
+#define WIDTH 8
 #endif
 #ifndef RAY_ORDER
 #define RAY_ORDER 0
 #endif
 
-/* The box and the reference of child k (0 left, 1 right) of internal node x:
- * from x's pair record (PAIRS=1), or from the tree's own nodes (PAIRS=0, for
- * trees whose pair records would not fit in one device buffer; records and
- * words are then the node array and x is a node index). */
-inline __global const float *child_box(__global const float *records, __global const int *words,
-                                       int x, int k) {
-#if PAIRS
-    return records + 16 * x + 8 * k;
+#if WIDE
+/* A wide record's rows (kernels/wide.cl) as vectors, and as lanes. */
+#if WIDTH == 4
+typedef float4 floatw;
+typedef int4 intw;
+#elif WIDTH == 8
+typedef float8 floatw;
+typedef int8 intw;
 #else
-    return records + 8 * words[8 * x + 3 + 4 * k];
+#error "WIDTH must be 4 or 8"
 #endif
+typedef union { floatw v; float s[WIDTH]; } floatw_lanes;
+typedef union { intw v; int s[WIDTH]; } intw_lanes;
+
+/* max_keep and min_keep lane by lane (NaN in x keeps m). */
+inline floatw max_keep_w(floatw x, floatw m) { return x > m ? x : m; }
+inline floatw min_keep_w(floatw x, floatw m) { return x < m ? x : m; }
+#else
+/* The box and the reference of child k (0 left, 1 right) of binary node x,
+ * read from the tree's own nodes (for trees whose wide records would not fit
+ * in one device buffer): a leaf child's reference is its node words, an
+ * internal child's is (its node index, 0). */
+inline __global const float *child_box(__global const float *nodes, __global const int *words,
+                                       int x, int k) {
+    return nodes + 8 * words[8 * x + 3 + 4 * k];
 }
 inline int2 child_ref(__global const int *words, int x, int k) {
-#if PAIRS
-    return (int2)(words[16 * x + 8 * k + 3], words[16 * x + 8 * k + 7]);
-#else
     const int c = words[8 * x + 3 + 4 * k];
     const int y = words[8 * c + 7];
     return node_is_leaf(y) ? (int2)(words[8 * c + 3], y) : (int2)(c, 0);
-#endif
 }
+#endif
 
 /* The faces in slot order, slot_faces[s] = faces[prim_order[s]]: a leaf's
  * triangles are then read without going through prim_order (one dependent
@@ -388,9 +367,10 @@ __kernel void order_faces(__global const uint *faces, __global const int *prim_o
 /* Rays origins[3i..], directions[3i..], tmin[i * interval_stride],
  * tmax[i * interval_stride]. The root's box is tested from its node; the root
  * enters the loop as the reference (root_x, root_y), in the encoding of the
- * pair records (see pack_pairs); `pairs` is the node array itself with
- * PAIRS=0. Triangles come from slot_faces (see order_faces). */
-__kernel void traverse(__global const float4 *nodes, __global const float4 *pairs,
+ * wide records (kernels/wide.cl: a leaf's node words, or (record, 0)); with
+ * WIDE=0 `records` is the node array itself and an internal root is
+ * (root, 0). Triangles come from slot_faces (see order_faces). */
+__kernel void traverse(__global const float4 *nodes, __global const float *records,
                        __global const int *prim_order,
                        __global const float *vertices, __global const uint *slot_faces,
                        const int root, const int root_x, const int root_y, const int num_nodes,
@@ -402,10 +382,9 @@ __kernel void traverse(__global const float4 *nodes, __global const float4 *pair
     const int gid = get_global_id(0);
     const int first = chunk_first(gid, per_item, count);
     const int last = chunk_last(gid, per_item, count);
-    __global const float *pf = (__global const float *)pairs;
-    __global const int *pw = (__global const int *)pairs;
-    /* A stack entry is a reference (x, y) in the pairs' encoding and the
-     * entry distance, to drop subtrees behind a closer hit. */
+    __global const int *record_words = (__global const int *)records;
+    /* A stack entry is a reference (x, y) and the entry distance, to drop
+     * subtrees behind a closer hit. */
     int stack_x[STACK_SIZE];
     int stack_y[STACK_SIZE];
     float stack_entry[STACK_SIZE];
@@ -418,12 +397,25 @@ __kernel void traverse(__global const float4 *nodes, __global const float4 *pair
 #endif
         const Ray ray = make_ray(origins + 3 * i, directions + 3 * i,
                                  tmins[i * interval_stride], tmaxs[i * interval_stride]);
+#if WIDE
+        /* The rows of a record holding each axis's near and far planes. */
+        const int near_x = ray.nx ? 1 : 0, near_y = ray.ny == 5 ? 3 : 2, near_z = ray.nz == 6 ? 5 : 4;
+        const int far_x = 1 - near_x, far_y = 5 - near_y, far_z = 9 - near_z;
+        const floatw ox = (floatw)(ray.ox), oy = (floatw)(ray.oy), oz = (floatw)(ray.oz);
+        const floatw ix = (floatw)(ray.ix), iy = (floatw)(ray.iy), iz = (floatw)(ray.iz);
+#endif
         float best = INFINITY, bu = 0.0f, bv = 0.0f;
         int best_slot = -1, flag = 0, visited = 1, tested = 0;
         int sp = 0;
         float entry, leave;
         int x = root_x, y = root_y;
-        int go = slab((__global const float *)(nodes + 2 * root), &ray, ray.tmax, &entry, &leave);
+        /* A NaN ray would pass every slab test (NaN distances are ignored),
+         * empty lanes of wide records included: it is reported, not traced. */
+        const int nan_ray = isnan(ray.ox) || isnan(ray.oy) || isnan(ray.oz) || isnan(ray.dx) ||
+                            isnan(ray.dy) || isnan(ray.dz) || isnan(ray.tmin) || isnan(ray.tmax);
+        if (nan_ray) flag |= FLAG_NAN_RAY;
+        int go = !nan_ray &&
+                 slab((__global const float *)(nodes + 2 * root), &ray, ray.tmax, &entry, &leave);
         while (go) {
             int have_next = 0, next_x = 0, next_y = 0;
             if (node_is_leaf(y)) {
@@ -442,18 +434,66 @@ __kernel void traverse(__global const float4 *nodes, __global const float4 *pair
 #endif
             } else {
                 const float limit = min_keep(best, ray.tmax);
+#if WIDE
+                /* The slab test of slab() for all lanes at once. */
+                __global const floatw *row = (__global const floatw *)records + 8 * x;
+                floatw t0 = (floatw)(ray.tmin);
+                t0 = max_keep_w((row[near_x] - ox) * ix, t0);
+                t0 = max_keep_w((row[near_y] - oy) * iy, t0);
+                t0 = max_keep_w((row[near_z] - oz) * iz, t0);
+                floatw t1 = (floatw)(INFINITY);
+                t1 = min_keep_w((row[far_x] - ox) * ix, t1);
+                t1 = min_keep_w((row[far_y] - oy) * iy, t1);
+                t1 = min_keep_w((row[far_z] - oz) * iz, t1);
+                intw_lanes hit;
+                hit.v = t0 <= min_keep_w(t1, (floatw)(limit)) * SLAB_PAD;
+                floatw_lanes enter, exit;
+                enter.v = t0;
+                exit.v = t1;
+                /* The lanes hit, nearest first (insertion sort; a later lane
+                 * goes before an earlier one of equal entry and exit). */
+                int lane[WIDTH];
+                int n = 0;
+                for (int c = 0; c < WIDTH; ++c) {
+                    if (!hit.s[c]) continue;
+                    const float e = enter.s[c], l = exit.s[c];
+                    int p = n++;
+                    for (; p > 0; --p) {
+                        const int o = lane[p - 1];
+                        if (enter.s[o] < e || (enter.s[o] == e && exit.s[o] < l)) break;
+                        lane[p] = o;
+                    }
+                    lane[p] = c;
+                }
+                if (n > 0) {
+                    __global const int *ref = record_words + 8 * WIDTH * x + 6 * WIDTH;
+                    for (int m = n - 1; m > 0; --m) {
+                        if (sp < STACK_SIZE) {
+                            stack_x[sp] = ref[lane[m]];
+                            stack_y[sp] = ref[WIDTH + lane[m]];
+                            stack_entry[sp] = enter.s[lane[m]];
+                            ++sp;
+                        } else {
+                            flag |= FLAG_OVERFLOW;
+                        }
+                    }
+                    next_x = ref[lane[0]];
+                    next_y = ref[WIDTH + lane[0]];
+                    have_next = 1;
+                }
+#else
                 float e0, x0, e1, x1;
-                const int h0 = slab(child_box(pf, pw, x, 0), &ray, limit, &e0, &x0);
-                const int h1 = slab(child_box(pf, pw, x, 1), &ray, limit, &e1, &x1);
+                const int h0 = slab(child_box(records, record_words, x, 0), &ray, limit, &e0, &x0);
+                const int h1 = slab(child_box(records, record_words, x, 1), &ray, limit, &e1, &x1);
                 if (h0 && h1) {
                     /* Nearer entry first; equal entries: nearer exit; else the right child. */
                     const int left_first = e0 < e1 || (e0 == e1 && x0 < x1);
-                    const int2 near = child_ref(pw, x, left_first ? 0 : 1);
+                    const int2 near = child_ref(record_words, x, left_first ? 0 : 1);
                     next_x = near.x;
                     next_y = near.y;
                     have_next = 1;
                     if (sp < STACK_SIZE) {
-                        const int2 far = child_ref(pw, x, left_first ? 1 : 0);
+                        const int2 far = child_ref(record_words, x, left_first ? 1 : 0);
                         stack_x[sp] = far.x;
                         stack_y[sp] = far.y;
                         stack_entry[sp] = left_first ? e1 : e0;
@@ -462,11 +502,12 @@ __kernel void traverse(__global const float4 *nodes, __global const float4 *pair
                         flag |= FLAG_OVERFLOW;
                     }
                 } else if (h0 || h1) {
-                    const int2 only = child_ref(pw, x, h0 ? 0 : 1);
+                    const int2 only = child_ref(record_words, x, h0 ? 0 : 1);
                     next_x = only.x;
                     next_y = only.y;
                     have_next = 1;
                 }
+#endif
             }
             if (!have_next) {
                 /* Pop, dropping subtrees whose entry lies beyond the closest hit. */

@@ -61,11 +61,11 @@ class BVH:
         # builders pass the list of their leaf nodes for the device refit.
         self._leaf_nodes = leaf_nodes
         self._leaf_nodes_buf: cl.Buffer | None = None
-        self._pairs = None          # child-pair records of the traversal (lbvh.traverse.pairs_for)
+        self._wide = None           # wide records of the traversal (lbvh.wide.wide_for)
         self._slot_faces = None     # faces in slot order, for the traversal (slot_faces_for)
         self._host: dict[str, np.ndarray] = {}
         # Buffers handed to the context's pool when the tree is dropped: the
-        # build's outputs (``pooled``) and the traversal's pair records.
+        # build's outputs (``pooled``) and the traversal's wide records.
         self._pooled: list[tuple[cl.Buffer, int]] = []
         if pooled:
             sizes = (NODE_DTYPE.itemsize * self.num_nodes, 4 * self.num_nodes, 4 * self.num_prims)
@@ -169,7 +169,7 @@ class BVH:
         Returns ``self``.
         """
         from .refit import refit_boxes
-        from .traverse import drop_pairs
+        from .wide import drop_wide
 
         v = as_vertices(vertices)
         if v.shape != self.vertices.shape:
@@ -179,7 +179,7 @@ class BVH:
                     self.parent_buf, self.num_prims, self.num_nodes, self._leaf_nodes_device())
         self.vertices_buf, self.vertices = new_buf, v
         self._host.clear()
-        drop_pairs(self)   # the traversal's copies of the boxes are stale
+        drop_wide(self)   # the traversal's copies of the boxes are stale
         return self
 
     def leaf_walks(self) -> tuple[cl.Buffer | None, int, int]:

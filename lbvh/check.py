@@ -1,7 +1,8 @@
 """``lbvh check``: the hard-case suite (:mod:`lbvh.hard_cases`) run by every builder.
 
 For each case and builder it builds the tree, runs the validator, looks for
-NaN or infinite boxes, compares the depth with the traversal stack, traces the
+NaN or infinite boxes, compares the stack the traversal needs with the one it
+gets, traces the
 case's rays (closest hit and any hit) and compares them with the reference
 answers: the float64 brute-force oracle (:func:`lbvh.oracle.brute_force`), or
 the exact answers a case carries when it is too big for the oracle.
@@ -9,7 +10,8 @@ the exact answers a case carries when it is too big for the oracle.
 What must hold (a case passes when all do):
 
 * the build succeeds and ``bvh.validate()`` passes; no box has a NaN or an infinity;
-* depth <= the stack the traversal gets (:func:`lbvh.traverse.stack_size_for`),
+* the stack the traversal can need (:func:`lbvh.traverse.stack_need`, at least
+  the depth) <= the stack it gets (:func:`lbvh.traverse.stack_size_for`),
   and then no ray overflows; a case that forces a smaller stack may overflow,
   but only on rays flagged ``overflow``;
 * every ray not flagged ``overflow`` agrees with the reference: same hit or
@@ -119,6 +121,7 @@ class Outcome:
     rays: int
     build_seconds: float = float("nan")
     depth: int = -1
+    stack_need: int = -1
     stack: int = -1
     tree_stack: int = -1
     forced_stack: bool = False
@@ -147,8 +150,9 @@ class Outcome:
             out.append(f"validator: {self.validate_error}")
         if self.nonfinite_boxes:
             out.append(f"{self.nonfinite_boxes} boxes with NaN or infinity")
-        if self.depth > self.tree_stack:
-            out.append(f"depth {self.depth} > the traversal's stack {self.tree_stack}")
+        if max(self.depth, self.stack_need) > self.tree_stack:
+            out.append(f"the traversal can need {max(self.depth, self.stack_need)} stack entries "
+                       f"(depth {self.depth}), it gets {self.tree_stack}")
         if not self.forced_stack and (self.overflow or self.any_hit_overflow):
             out.append(f"{self.overflow + self.any_hit_overflow} overflows with a stack that "
                        "holds the tree")
@@ -453,7 +457,7 @@ def run_case(case: Case, builder: str, judge: Judge | None = None, device: Any =
     ``bvh_out`` (a list) the tree is appended to it, for callers that test more.
     """
     import lbvh
-    from .traverse import stack_size_for
+    from .traverse import stack_need, stack_size_for
 
     if builder not in BUILDERS:
         raise ValueError(f"unknown builder {builder!r}; known: {', '.join(BUILDERS)}")
@@ -479,7 +483,8 @@ def run_case(case: Case, builder: str, judge: Judge | None = None, device: Any =
     out.forced_stack = case.stack_size is not None
     out.tree_stack = stack_size_for(bvh)
     out.stack = case.stack_size if out.forced_stack else out.tree_stack
-    out.depth = int(bvh._traverse_depth)  # computed and cached by stack_size_for
+    out.stack_need = stack_need(bvh)
+    out.depth = int(bvh.depths().max()) if bvh.num_nodes > 1 else 0
     if out.validate_error:  # tracing a broken tree proves nothing more
         return out
     judge = Judge(case, reference(case)) if judge is None else judge

@@ -16,28 +16,29 @@ naming the first bad ray: NaN or infinite origins and directions (also values
 beyond the float32 range), zero-length directions (after the float32
 conversion), NaN, negative or infinite ``tmin``, NaN ``tmax``, ``tmin > tmax``,
 wrong shapes or dtypes. The kernel itself terminates on any input (its loop is
-bounded by the stack and by the node count), so a NaN ray that reached it
-through :func:`trace_buffers` costs at most one visit per node.
+bounded by the stack and by the node count); a NaN ray that reached it through
+:func:`trace_buffers` is not traced: a miss with :data:`FLAG_NAN_RAY` set.
 
 Stack
-    The stack has room for the deepest path of the tree (``bvh.depths().max()``,
-    cached on the tree), rounded up to one of :data:`STACK_BUCKETS` so that trees
-    of similar depth share one compiled program. A tree deeper than the last
+    The stack has room for the most entries an ordered traversal of the tree
+    can hold (:func:`stack_size_for`), rounded up to one of
+    :data:`STACK_BUCKETS` so that trees of similar depth share one compiled
+    program. A tree deeper than the last
     bucket gets the last bucket: rays that would need more set their
     ``overflow`` flag (the subtree that did not fit is skipped), which the
     result counts. An overflow is never silent.
 
-Pair records
-    The kernel reads a tree through child-pair records (:func:`pairs_for`): one
-    64-byte record per internal node holding both children's boxes, packed on
-    the device from any tree of the layout on its first query and cached on the
-    tree (a refit drops them). A visit then reads one record instead of three
-    nodes: 1.1-1.5x the rays per second on the bunny and Sponza. They cost
-    64 bytes per internal node of device memory; a tree whose records would
-    exceed the device's largest buffer is traversed through its own nodes.
-    Likewise the faces are copied once in slot order (:func:`slot_faces_for`,
-    12 bytes per triangle), so that a leaf's triangles are read without a
-    detour through ``prim_order``.
+Wide records
+    The kernel reads a tree through wide records (:mod:`lbvh.wide`): up to
+    8 children per record on a CPU (4 elsewhere), their boxes in rows that one
+    vector slab test covers, made on the device from any tree of the layout on
+    its first query and cached on the tree (a refit drops them). On the 2-core
+    machine that traces primary rays 1.4-1.8x as fast as binary records of two
+    children did (bunny, Sponza, a 1M-triangle terrain). A tree whose records
+    would exceed the device's largest buffer is traversed through its own
+    binary nodes. Likewise the faces are copied once in slot order
+    (:func:`slot_faces_for`, 12 bytes per triangle), so that a leaf's
+    triangles are read without a detour through ``prim_order``.
 """
 from __future__ import annotations
 
@@ -49,20 +50,18 @@ import pyopencl as cl
 
 from . import device as dev
 from .geometry import real_array
-from .layout import NODE_DTYPE, is_leaf
 from .ray_order import ray_order, worth_ordering
+from .wide import wide_for
 
 KERNEL_FILE = "traverse.cl"
-
-#: Bytes of one child-pair record on the device (kernels/traverse.cl, pack_pairs).
-PAIR_BYTES = 64
 
 #: Bits of the per-ray flag word written by the kernel.
 FLAG_OVERFLOW = 1      # the stack was full: a subtree was skipped
 FLAG_VISIT_LIMIT = 2   # more nodes visited than the tree has (a malformed, cyclic tree)
+FLAG_NAN_RAY = 4       # NaN in the ray (only through trace_buffers): not traced
 
 #: Stack sizes a program is compiled for; a tree uses the first that holds its depth.
-STACK_BUCKETS = (32, 64, 96, 128, 192, 256)
+STACK_BUCKETS = (32, 64, 96, 128, 192, 256, 384, 512, 768)
 
 TRIANGLE_TESTS = {"watertight": 0, "moller": 1}
 
@@ -72,7 +71,6 @@ TRIANGLE_TESTS = {"watertight": 0, "moller": 1}
 _WORK_GROUP = 64
 
 _UNIT_ROUNDOFF = 2.0 ** -24
-_NO_BAD_NODE = np.iinfo(np.int32).max
 
 
 @dataclass
@@ -280,20 +278,32 @@ def upload_rays(ctx: dev.Context, rays: Rays) -> DeviceRays:
 
 # -- programs -------------------------------------------------------------------
 
-def stack_size_for(bvh: Any) -> int:
-    """Stack entries the kernel gets for this tree: its depth rounded up to a bucket.
+def stack_need(bvh: Any) -> int:
+    """The most stack entries an ordered traversal of this tree can hold.
 
-    Ordered traversal pushes at most one node per level, so the tree's depth
-    (edges from the root to the deepest leaf) is enough. Cached on the tree as
-    ``bvh._traverse_depth`` (the topology never changes after the build; a
-    refit keeps it).
+    Through wide records: their ``stack_need`` (a record pushes its children
+    but the one it follows, so the most entries on the stack is the largest
+    sum of that over the records of one root-to-leaf path; never less than
+    the binary depth). Through the binary nodes: the tree's depth (one push
+    per level), cached on the tree as ``bvh._traverse_depth`` (the topology
+    never changes after the build).
     """
+    wide = wide_for(bvh)
+    if wide.packed:
+        return wide.stack_need
     depth = getattr(bvh, "_traverse_depth", None)
     if depth is None:
         depth = int(bvh.depths().max()) if bvh.num_nodes > 1 else 0
         bvh._traverse_depth = depth
+    return depth
+
+
+def stack_size_for(bvh: Any) -> int:
+    """Stack entries the kernel gets for this tree: :func:`stack_need` rounded up
+    to a bucket (the last bucket if none holds it: then rays may overflow, flagged)."""
+    need = stack_need(bvh)
     for bucket in STACK_BUCKETS:
-        if depth <= bucket:
+        if need <= bucket:
             return bucket
     return STACK_BUCKETS[-1]
 
@@ -332,100 +342,7 @@ def _launch(count: int) -> tuple[int, int, tuple[int]]:
     return 1, max(1, -(-count // _WORK_GROUP) * _WORK_GROUP), (_WORK_GROUP,)
 
 
-# -- child-pair records ---------------------------------------------------------
-
-@dataclass
-class Pairs:
-    """A tree's child-pair records on the device (kernels/traverse.cl, pack_pairs).
-
-    ``buffer`` holds :data:`PAIR_BYTES` per internal node (or is the tree's own
-    node buffer when ``packed`` is False: a tree whose records would not fit in
-    one device buffer is traversed through its nodes, more slowly). ``root_x``,
-    ``root_y``: the root's reference in the records' encoding.
-    """
-    buffer: cl.Buffer
-    packed: bool
-    root_x: int
-    root_y: int
-
-
-def internal_rank(num_nodes: int, leaf_nodes: np.ndarray | None) -> np.ndarray | None:
-    """``int32 (num_nodes,)``: each internal node's rank among the internal nodes
-    (the index of its pair record); ``None`` for the Karras numbering, where the
-    internal nodes come first and the rank is the node index."""
-    if leaf_nodes is None:
-        return None
-    internal = np.ones(num_nodes, bool)
-    internal[leaf_nodes] = False
-    return (np.cumsum(internal, dtype=np.int64) - 1).astype(np.int32)
-
-
-def pack_pairs_numpy(nodes: np.ndarray, rank: np.ndarray | None) -> np.ndarray:
-    """The numpy twin of the ``pack_pairs`` kernel: ``NODE_DTYPE (R, 2)`` records,
-    the left and the right child of each internal node, a leaf child with its own
-    words, an internal child with ``a`` = its record index and ``b`` = 0."""
-    leaf = is_leaf(nodes)
-    internal = np.flatnonzero(~leaf)
-    index = internal if rank is None else rank[internal]
-    pairs = np.zeros((len(internal), 2), NODE_DTYPE)
-    for k, word in enumerate(("a", "b")):
-        child = nodes[word][internal]
-        record = nodes[child].copy()
-        inner = ~leaf[child]
-        record["a"][inner] = child[inner] if rank is None else rank[child[inner]]
-        record["b"][inner] = 0
-        pairs[index, k] = record
-    return pairs
-
-
-def _root_reference(bvh: Any, rank: np.ndarray | None, packed: bool) -> tuple[int, int]:
-    words = np.empty(8, np.int32)
-    cl.enqueue_copy(bvh.ctx.queue, words, bvh.nodes_buf, src_offset=32 * bvh.root, is_blocking=True)
-    a, b = int(words[3]), int(words[7])
-    if b < 0:
-        return a, b
-    return (int(rank[bvh.root]) if packed and rank is not None else bvh.root), 0
-
-
-def pairs_for(bvh: Any, max_bytes: int | None = None) -> Pairs:
-    """The tree's pair records, packed on the device on first use and cached on
-    the tree as ``bvh._pairs`` (a refit drops them). Records larger than
-    ``max_bytes`` (default: the device's largest buffer) are not packed: the
-    kernel then reads the tree's own nodes."""
-    cached = getattr(bvh, "_pairs", None)
-    if cached is not None:
-        return cached
-    ctx = bvh.ctx
-    leaf_nodes = getattr(bvh, "_leaf_nodes", None)
-    num_leaves = bvh.num_prims if leaf_nodes is None else len(leaf_nodes)
-    records = max(bvh.num_nodes - num_leaves, 1)
-    if max_bytes is None:
-        max_bytes = int(ctx.device.max_mem_alloc_size)
-    packed = records * PAIR_BYTES <= max_bytes
-    rank = internal_rank(bvh.num_nodes, leaf_nodes)
-    if packed:
-        nbytes = records * PAIR_BYTES
-        buffer = ctx.take_scratch(nbytes) or dev.empty(ctx, nbytes)
-        rank_buf = dev.to_device(ctx, rank if rank is not None else np.zeros(1, np.int32))
-        bad = dev.to_device(ctx, np.int32([_NO_BAD_NODE]))
-        launch = ctx.launch(bvh.num_nodes, min_per_item=4096, gpu_per_item=1)
-        knl = ctx.kernel(KERNEL_FILE, "pack_pairs", {})
-        knl(ctx.queue, (launch.global_size,), launch.local, bvh.nodes_buf, np.int32(bvh.num_nodes),
-            np.int32(launch.per_item), rank_buf, np.int32(rank is not None), buffer, bad)
-        bad_node = int(dev.from_device(ctx, bad, np.int32, (1,))[0])
-        rank_buf.release()
-        bad.release()
-        if bad_node != _NO_BAD_NODE:
-            ctx.give_scratch(buffer, nbytes)
-            raise ValueError(f"tree: node {bad_node} has a child index outside "
-                             f"[0, {bvh.num_nodes}); the tree cannot be traversed")
-        bvh._pooled.append((buffer, nbytes))   # back to the pool with the tree
-    else:
-        buffer = bvh.nodes_buf
-    pairs = Pairs(buffer, packed, *_root_reference(bvh, rank, packed))
-    bvh._pairs = pairs
-    return pairs
-
+# -- faces in slot order ---------------------------------------------------------
 
 def slot_faces_for(bvh: Any) -> cl.Buffer:
     """``uint32 (F, 3)`` on the device: ``faces[prim_order]``, the triangles in slot
@@ -444,19 +361,6 @@ def slot_faces_for(bvh: Any) -> cl.Buffer:
     bvh._pooled.append((out, nbytes))   # back to the pool with the tree
     bvh._slot_faces = out
     return out
-
-
-def drop_pairs(bvh: Any) -> None:
-    """Forget the tree's pair records (after a refit); their buffer goes to the
-    context's pool, where the next :func:`pairs_for` finds it."""
-    pairs, bvh._pairs = bvh._pairs, None
-    if pairs is None or not pairs.packed:
-        return
-    for k, (buf, nbytes) in enumerate(bvh._pooled):
-        if buf is pairs.buffer:
-            del bvh._pooled[k]
-            bvh.ctx.give_scratch(buf, nbytes)
-            return
 
 
 # -- device-level entry -----------------------------------------------------------
@@ -488,11 +392,11 @@ def trace_buffers(bvh: Any, rays: DeviceRays, *, any_hit: bool = False,
     ctx = bvh.ctx
     if stack_size is None:
         stack_size = stack_size_for(bvh)
-    pairs = pairs_for(bvh)
+    wide = wide_for(bvh)
     knl = ctx.kernel(KERNEL_FILE, "traverse",
                      {**_defines(ctx, any_hit, triangle_test, counters, stack_size),
-                      "PAIRS": int(pairs.packed), "RAY_ORDER": int(order is not None),
-                      **(defines or {})})
+                      "WIDE": int(wide.packed), "WIDTH": wide.width,
+                      "RAY_ORDER": int(order is not None), **(defines or {})})
     count = int(rays.count)
     if hits is None:
         hits = dev.empty(ctx, 16 * count)
@@ -501,9 +405,9 @@ def trace_buffers(bvh: Any, rays: DeviceRays, *, any_hit: bool = False,
     if counters and counter_buf is None:
         counter_buf = dev.empty(ctx, 8 * count)
     per_item, global_size, local = _launch(count)
-    ev = knl(ctx.queue, (global_size,), local, bvh.nodes_buf, pairs.buffer, bvh.prim_order_buf,
-             bvh.vertices_buf, slot_faces_for(bvh), np.int32(bvh.root), np.int32(pairs.root_x),
-             np.int32(pairs.root_y), np.int32(bvh.num_nodes), rays.origins, rays.directions,
+    ev = knl(ctx.queue, (global_size,), local, bvh.nodes_buf, wide.buffer, bvh.prim_order_buf,
+             bvh.vertices_buf, slot_faces_for(bvh), np.int32(bvh.root), np.int32(wide.root_x),
+             np.int32(wide.root_y), np.int32(bvh.num_nodes), rays.origins, rays.directions,
              rays.tmin, rays.tmax, np.int32(rays.interval_stride),
              order if order is not None else flags, hits, flags,
              counter_buf if counters else flags, np.int32(count), np.int32(per_item),

@@ -4,7 +4,8 @@ For each case and builder (device LBVH with 30, 63 and automatic key bits, each
 with and without leaf collapse, and the serial SAH) two tests state what must hold:
 
 * ``test_tree``: the build succeeds, ``bvh.validate()`` passes, no box holds a
-  NaN or an infinity, and the depth fits the traversal stack
+  NaN or an infinity, and the stack the traversal can need (at least the
+  depth; ``lbvh.traverse.stack_need``) fits the stack it gets
   (``lbvh.traverse.stack_size_for``), so a build always terminates with a
   tree the kernel can walk;
 * ``test_hits``: every ray's closest hit and any hit are right against the
@@ -85,7 +86,9 @@ def test_tree(name, builder):
     assert out.error is None, out.error
     assert out.validate_error is None, out.validate_error
     assert out.nonfinite_boxes == 0
-    assert 0 <= out.depth <= out.tree_stack, f"depth {out.depth} > stack {out.tree_stack}"
+    # the traversal's stack holds the most entries it can need, never less than the depth
+    assert 0 <= out.depth <= out.stack_need <= out.tree_stack, \
+        f"depth {out.depth}, need {out.stack_need} > stack {out.tree_stack}"
 
 
 @pytest.mark.parametrize("builder", BUILDERS)
@@ -315,6 +318,8 @@ def test_check_exit_status_follows_the_rules():
                              {"validate_error": "invalid BVH"}, {"nonfinite_boxes": 1},
                              {"overflow": 1}, {"any_hit_mismatches": 1}, {"error": "boom"})]
     broken.append(check.Outcome("c", "b", 11, 10, 5, depth=40, stack=32, tree_stack=32))
+    broken.append(check.Outcome("c", "b", 11, 10, 5, depth=20, stack_need=40, stack=32,
+                                tree_stack=32))
     for outcome in broken:
         assert not outcome.passed and len(outcome.failures()) == 1, outcome
         assert check.exit_status([ok, outcome]) == 1

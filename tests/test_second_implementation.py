@@ -48,6 +48,20 @@ for kw in ({"key_bits": 30}, {"key_bits": 63}, {"collapse": True}, {"builder": "
     assert np.array_equal(a.nodes, p.nodes), kw
     print("same on both:", kw)
 
+# Both widths of wide records on both, and the binary walk (WIDE=0).
+from lbvh.wide import WIDTHS, wide_for
+a = lbvh.build(v, f, device="oclgrind")
+want = lbvh.build(v, f, device="pthread").intersect(o, d)
+for width in WIDTHS:
+    wide_for(a, width=width)
+    got = a.intersect(o, d)
+    assert np.array_equal(got.prim, want.prim) and np.array_equal(got.t, want.t), width
+b = lbvh.BVH.from_arrays(a.nodes, a.prim_order, a.root, v, f, builder="x", device="oclgrind")
+assert not wide_for(b, max_bytes=0).packed
+got = b.intersect(o, d)
+assert np.array_equal(got.prim, want.prim) and np.array_equal(got.t, want.t)
+print("same on both: wide records of 4 and 8 lanes, binary nodes")
+
 # The CPU paths that need large inputs on PoCL, at a small size: the MSD sort
 # and the ray order.
 import pyopencl as cl
@@ -84,5 +98,5 @@ def test_builders_refit_and_traversal_agree_on_oclgrind(tmp_path):
     out = subprocess.run([sys.executable, "-c", SCRIPT], cwd=REPO, env=env, capture_output=True,
                          text=True, timeout=600)
     assert out.returncode == 0, out.stdout + out.stderr[-3000:]
-    assert out.stdout.count("same on both") == 7
+    assert out.stdout.count("same on both") == 8
     assert "Invalid" not in out.stderr  # Oclgrind reports out-of-bounds accesses on stderr
