@@ -86,7 +86,9 @@ class Hits:
             the result of that ray may have missed a subtree.
         overflow_count: number of ``True`` in ``overflow``.
         nodes_visited: ``int32 (N,)`` with ``counters=True`` (else ``None``): the root plus
-            every node the traversal descended into or popped.
+            every node the traversal descended into or popped; a node is a wide record
+            (up to 8 children, :mod:`lbvh.wide`) or a leaf, or a binary node for trees
+            traversed through their own nodes.
         tris_tested: ``int32 (N,)`` with ``counters=True`` (else ``None``).
 
     From :func:`occluded` with ``return_hits=True`` the hit is *a* hit in
