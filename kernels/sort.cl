@@ -32,9 +32,10 @@ typedef uint key_t;
 
 inline uint digit_of(key_t key, int shift) { return (uint)(key >> shift) & DIGIT_MASK; }
 
-/* AND and OR of the keys of each chunk: bits where AND != OR vary. */
+/* AND and OR of the keys of each chunk: bits where AND != OR vary. Both go
+ * to one array (ANDs, then ORs) that the host reads back in one command. */
 __kernel void key_bits(__global const key_t *keys, const int n, const int per_item,
-                       __global key_t *and_out, __global key_t *or_out) {
+                       __global key_t *and_or) {
     const int gid = get_global_id(0);
     const int first = chunk_first(gid, per_item, n);
     const int last = chunk_last(gid, per_item, n);
@@ -43,8 +44,8 @@ __kernel void key_bits(__global const key_t *keys, const int n, const int per_it
         a &= keys[i];
         o |= keys[i];
     }
-    and_out[gid] = a;
-    or_out[gid] = o;
+    and_or[gid] = a;
+    and_or[get_global_size(0) + gid] = o;
 }
 
 __kernel void digit_histogram(__global const key_t *keys, const int n, const int per_item,

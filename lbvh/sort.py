@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl as cl
 
-from .device import Context, MemoryTracker
+from .device import Context, MemoryTracker, to_device
 
 KERNEL_FILE = "sort.cl"
 
@@ -36,17 +36,14 @@ def varying_bits(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, n: int, key_
     """Mask of the key bits that are not the same in every key (read back: it picks the passes)."""
     dtype = np.uint64 if key_bits == 64 else np.uint32
     launch = ctx.launch(n, gpu_per_item=-(-n // 4096))
-    and_buf = mem.alloc(launch.global_size * np.dtype(dtype).itemsize, scratch=True)
-    or_buf = mem.alloc(launch.global_size * np.dtype(dtype).itemsize, scratch=True)
+    and_or = mem.alloc(2 * launch.global_size * np.dtype(dtype).itemsize, scratch=True)
     ev = ctx.kernel(KERNEL_FILE, "key_bits", _defines(key_bits))(
         ctx.queue, (launch.global_size,), launch.local, keys, np.int32(n),
-        np.int32(launch.per_item), and_buf, or_buf)
-    ands = np.empty(launch.global_size, dtype)
-    ors = np.empty(launch.global_size, dtype)
-    cl.enqueue_copy(ctx.queue, ands, and_buf, wait_for=[ev])
-    cl.enqueue_copy(ctx.queue, ors, or_buf, is_blocking=True)
-    mem.free(and_buf, or_buf)
-    return int(np.bitwise_and.reduce(ands)) ^ int(np.bitwise_or.reduce(ors)), [ev]
+        np.int32(launch.per_item), and_or)
+    parts = np.empty((2, launch.global_size), dtype)
+    cl.enqueue_copy(ctx.queue, parts, and_or, wait_for=[ev], is_blocking=True)
+    mem.free(and_or)
+    return int(np.bitwise_and.reduce(parts[0])) ^ int(np.bitwise_or.reduce(parts[1])), [ev]
 
 
 def _defines(key_bits: int, radix_bits: int = 8) -> dict[str, int]:
@@ -111,9 +108,20 @@ def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buf
     src, dst = (keys, values), (keys_alt, values_alt)
     scan_local = None if ctx.is_cpu else (64,)
     plan = msd_plan(mask, n, radix_bits, ctx.is_cpu)
+    local_buf = None
+    if plan is not None:
+        local_buf = to_device(ctx, np.int32(plan[1]))   # no command: copied at creation
+        buckets_k = ctx.kernel(KERNEL_FILE, "sort_buckets", defines)
+    # The passes are queued behind a gate opened once all are queued: on a CPU
+    # device the host thread shares the cores with the kernels, and once the
+    # first pass runs it waits milliseconds for a core to queue the next one.
+    gate = cl.UserEvent(ctx.ctx)
+    wait = [gate]
     for shift in (shifts if plan is None else [plan[0]]):
         events.append(hist_k(ctx.queue, (chunks,), launch.local, src[0], np.int32(n),
-                             np.int32(launch.per_item), np.int32(shift), np.int32(chunks), counts))
+                             np.int32(launch.per_item), np.int32(shift), np.int32(chunks), counts,
+                             wait_for=wait))
+        wait = None
         events.append(scan_k(ctx.queue, (radix,), scan_local, counts, np.int32(chunks), totals))
         events.append(scatter_k(ctx.queue, (chunks,), launch.local, src[0], src[1], dst[0], dst[1],
                                 np.int32(n), np.int32(launch.per_item), np.int32(shift),
@@ -122,15 +130,15 @@ def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buf
     passes = len(shifts)
     if plan is not None:
         local = plan[1]
-        local_buf = mem.alloc(4 * len(local), scratch=True)
-        cl.enqueue_copy(ctx.queue, local_buf, np.int32(local))
-        events.append(ctx.kernel(KERNEL_FILE, "sort_buckets", defines)(
+        events.append(buckets_k(
             ctx.queue, (chunks,), launch.local, src[0], src[1], dst[0], dst[1], np.int32(n),
             np.int32(launch.per_item), totals, local_buf, np.int32(len(local))))
-        mem.free(local_buf)
         if len(local) % 2:
             src, dst = dst, src
         passes = 1 + len(local)
+    gate.set_status(cl.command_execution_status.COMPLETE)
+    if local_buf is not None:
+        local_buf.release()   # freed by the runtime once the kernel is done
     mem.free(counts, totals)
     if free_inputs:
         mem.free(*dst)
