@@ -25,6 +25,8 @@
  * sibling's last leaf came earlier in the chunk). Only nodes that straddle a
  * chunk boundary, a few dozen per chunk, pay for the atomic. On a GPU (one
  * leaf per work-item) every internal node straddles: the plain scheme.
+ * The leaf records are written whole here (emit.cl ran with WRITE_LEAVES=0):
+ * leaf n-1+k holds slot k alone.
  */
 #include "common.h"
 
@@ -77,9 +79,15 @@ __kernel void refit(__global const float4 *boxes /* lo, hi per triangle (bounds.
      * each other, so the core overlaps their cache misses; in the walks below,
      * every atomic is a full barrier that would stall each gather in turn. */
     for (int k = first; k < last; ++k) {
+#if KARRAS_RANGES
+        /* Straight from emit.cl, which leaves the leaf records to us
+         * (WRITE_LEAVES=0): leaf k holds slot k alone. */
+        const int node = leaf_first + k, slot = k, count = 1;
+#else
         const int node = use_leaf_list ? leaf_nodes[k] : leaf_first + k;
         const int slot = node_words[8 * node + 3];
         const int count = -node_words[8 * node + 7];
+#endif
         if (slot + PREFETCH_AHEAD <= leaf_first)  /* leaf_first = last slot */
             PREFETCH_BOX(boxes + 2 * prim_order[slot + PREFETCH_AHEAD]);
         const int t0 = prim_order[slot];
@@ -89,7 +97,12 @@ __kernel void refit(__global const float4 *boxes /* lo, hi per triangle (bounds.
             lo = min3(lo, boxes[2 * t].xyz);
             hi = max3(hi, boxes[2 * t + 1].xyz);
         }
+#if KARRAS_RANGES
+        nodes[2 * node] = (float4)(lo, as_float(slot));
+        nodes[2 * node + 1] = (float4)(hi, as_float(-count));
+#else
         store_box(node_floats, node, lo, hi);
+#endif
     }
     for (int k = first; k < last; ++k) {
         int node = use_leaf_list ? leaf_nodes[k] : leaf_first + k;

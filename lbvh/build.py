@@ -18,11 +18,12 @@ from .bounds import triangle_bounds
 from .bvh import BVH
 from .emit import emit_hierarchy
 from .geometry import as_mesh
-from .morton import AUTO_DUPLICATE_FRACTION, choose_key_bits, count_duplicates, morton_codes
+from .morton import (AUTO_DUPLICATE_FRACTION, choose_key_bits, enqueue_count_duplicates,
+                     morton_codes)
 from .refit import refit_from_boxes
 from .report import PHASES, BuildReport
 from .restructure import check_rounds, restructure_treelets
-from .sort import radix_sort
+from .sort import enqueue_varying_bits, radix_sort
 
 KEY_CHOICES = {"auto": None, 30: 32, 63: 64, "30": 32, "63": 64}
 
@@ -122,6 +123,27 @@ def _check_collapse_options(c_node: float = 1.0, c_tri: float = 1.0, max_leaf_si
     check_sah_constants(c_node, c_tri, max_leaf_size)
 
 
+def _codes_and_mask(ctx: dev.Context, mem: dev.MemoryTracker, boxes: cl.Buffer, box: cl.Buffer,
+                    n: int, bits: int, events: dict[str, list]):
+    """Queue the Morton codes and the varying-bits read: (keys, values, a function
+    that waits for the mask and returns what radix_sort's ``mask`` takes)."""
+    keys, values, evs = morton_codes(ctx, mem, boxes, box, n, bits)
+    events["morton"] += evs
+    mask, evs = enqueue_varying_bits(ctx, mem, keys, n, bits)
+    return keys, values, lambda: (mask(), evs)
+
+
+def _sort_and_count(ctx: dev.Context, mem: dev.MemoryTracker, keys: cl.Buffer, values: cl.Buffer,
+                    n: int, bits: int, mask: tuple[int, list], events: dict[str, list]):
+    """Sort the codes and count their duplicates, queued together; waits for the count."""
+    with dev.queued_together(ctx):
+        result = radix_sort(ctx, mem, keys, values, n, bits, mask=mask)
+        count, evs = enqueue_count_duplicates(ctx, mem, result.keys, n, bits)
+    events["sort"] += result.events
+    events["morton"] += evs
+    return result, count()
+
+
 def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl.Buffer,
                     key_bits: int | None, auto_duplicate_fraction: float = AUTO_DUPLICATE_FRACTION,
                     treelet_rounds: int = 0) -> BVH:
@@ -131,45 +153,41 @@ def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl
     events: dict[str, list] = {phase: [] for phase in PHASES}
     t0 = time.perf_counter()
 
-    boxes, box, evs = triangle_bounds(ctx, mem, vbuf, fbuf, n)
-    events["bounds"] += evs
-
-    bits = key_bits or 32
-    keys, values, evs = morton_codes(ctx, mem, boxes, box, n, bits)
-    events["morton"] += evs
-    result = radix_sort(ctx, mem, keys, values, n, bits)
-    events["sort"] += result.events
+    # The host waits for the device twice: for the varying key bits (which
+    # sort passes run) and for the duplicate count (30 or 63 bits). The
+    # commands between waits are queued together (dev.queued_together).
+    with dev.queued_together(ctx):
+        boxes, box, evs = triangle_bounds(ctx, mem, vbuf, fbuf, n)
+        events["bounds"] += evs
+        bits = key_bits or 32
+        keys, values, mask = _codes_and_mask(ctx, mem, boxes, box, n, bits, events)
+    result, duplicates = _sort_and_count(ctx, mem, keys, values, n, bits, mask(), events)
     passes = result.passes
-    duplicates, evs = count_duplicates(ctx, mem, result.keys, n, bits)
-    events["morton"] += evs
     choice = f"fixed: {'63' if bits == 64 else '30'} bits asked for"
     if key_bits is None:
         bits, choice = choose_key_bits(duplicates, n, auto_duplicate_fraction)
         if bits == 64:
             mem.free(result.keys, result.values)
-            keys, values, evs = morton_codes(ctx, mem, boxes, box, n, 64)
-            events["morton"] += evs
-            result = radix_sort(ctx, mem, keys, values, n, 64)
-            events["sort"] += result.events
+            with dev.queued_together(ctx):
+                keys, values, mask = _codes_and_mask(ctx, mem, boxes, box, n, 64, events)
+            result, duplicates = _sort_and_count(ctx, mem, keys, values, n, 64, mask(), events)
             passes += result.passes
-            duplicates, evs = count_duplicates(ctx, mem, result.keys, n, 64)
-            events["morton"] += evs
     mem.free(box)
 
-    nodes, parent, evs = emit_hierarchy(ctx, mem, result.keys, n, bits)
-    events["emit"] += evs
-    mem.free(result.keys)
-    prim_order = result.values
-
-    arrivals = mem.alloc(4 * (2 * n - 1), scratch=True)
-    events["refit"] += refit_from_boxes(ctx, boxes, prim_order, nodes, parent, arrivals, n, 2 * n - 1,
-                                        karras_ranges=True)
-    mem.free(boxes)
-    if treelet_rounds:
-        cost = mem.alloc(4 * (2 * n - 1), scratch=True)
-        events["restructure"] = restructure_treelets(
-            ctx, nodes, parent, cost, arrivals, 2 * n - 1, 0, treelet_rounds, n - 1, n)
-        mem.free(cost)
+    with dev.queued_together(ctx):
+        nodes, parent, evs = emit_hierarchy(ctx, mem, result.keys, n, bits, write_leaves=False)
+        events["emit"] += evs
+        mem.free(result.keys)
+        prim_order = result.values
+        arrivals = mem.alloc(4 * (2 * n - 1), scratch=True)
+        events["refit"] += refit_from_boxes(ctx, boxes, prim_order, nodes, parent, arrivals, n,
+                                            2 * n - 1, karras_ranges=True)
+        mem.free(boxes)
+        if treelet_rounds:
+            cost = mem.alloc(4 * (2 * n - 1), scratch=True)
+            events["restructure"] = restructure_treelets(
+                ctx, nodes, parent, cost, arrivals, 2 * n - 1, 0, treelet_rounds, n - 1, n)
+            mem.free(cost)
     ctx.queue.finish()
     wall = time.perf_counter() - t0
     mem.free(arrivals)

@@ -12,11 +12,12 @@ substring of ``"<platform name> / <device name>"`` (``"pocl"``, ``"nvidia"``,
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 import pyopencl as cl
@@ -288,6 +289,24 @@ def event_seconds(events: Sequence[cl.Event]) -> float:
         ev.wait()
         total += ev.profile.end - ev.profile.start
     return total * 1e-9
+
+
+@contextlib.contextmanager
+def queued_together(ctx: Context) -> Iterator[None]:
+    """Commands queued inside the block start only once the block ends.
+
+    On a CPU device the host thread shares the cores with the kernels: once a
+    kernel runs, queueing the next one can wait milliseconds for a core, and
+    the device idles in between. A barrier on a user event (OpenCL 1.2) holds
+    the queue until every command of the block is in it. Nothing inside the
+    block may wait for the device (a blocking read would never return).
+    """
+    gate = cl.UserEvent(ctx.ctx)
+    cl.enqueue_barrier(ctx.queue, wait_for=[gate])
+    try:
+        yield
+    finally:
+        gate.set_status(cl.command_execution_status.COMPLETE)
 
 
 def to_device(ctx: Context, array: np.ndarray) -> cl.Buffer:

@@ -1,8 +1,8 @@
 """Stage 5: Karras 2012 hierarchy emission on the device (kernels/emit.cl).
 
-Writes the child links of the ``n - 1`` internal nodes, the leaf records and
-the parent links, in the numbering of docs/layout.md. Boxes are left to the
-refit (stage 6).
+Writes the child links of the ``n - 1`` internal nodes, the leaf records
+(unless the build's refit is to write them) and the parent links, in the
+numbering of docs/layout.md. Boxes are left to the refit (stage 6).
 """
 from __future__ import annotations
 
@@ -18,19 +18,22 @@ LANES = 8
 
 
 def emit_hierarchy(ctx: Context, mem: MemoryTracker, sorted_keys: cl.Buffer, n: int,
-                   key_bits: int, per_item: int | None = None
+                   key_bits: int, per_item: int | None = None, write_leaves: bool = True
                    ) -> tuple[cl.Buffer, cl.Buffer, list[cl.Event]]:
     """Device node records (boxes not yet set) and parent links for ``2n - 1`` nodes.
 
     ``per_item`` forces the chunk length (tests); by default the launch picks
-    whole groups of ``LANES`` nodes, one group per work-item on a GPU.
+    whole groups of ``LANES`` nodes, one group per work-item on a GPU. With
+    ``write_leaves=False`` the leaf records are left unwritten: the build's
+    refit (``refit_from_boxes(karras_ranges=True)``) writes them whole.
     """
     num_nodes = 2 * n - 1
     nodes = mem.alloc(num_nodes * NODE_DTYPE.itemsize)
     parent = mem.alloc(num_nodes * 4)
     launch = (ctx.launch(n, min_per_item=256, gpu_per_item=LANES, multiple=LANES)
               if per_item is None else ctx.launch_chunks(n, per_item))
-    ev = ctx.kernel(KERNEL_FILE, "emit_hierarchy", {"KEY_BITS": key_bits})(
+    ev = ctx.kernel(KERNEL_FILE, "emit_hierarchy",
+                    {"KEY_BITS": key_bits, "WRITE_LEAVES": int(write_leaves)})(
         ctx.queue, (launch.global_size,), launch.local, sorted_keys, np.int32(n),
         np.int32(launch.per_item), nodes, parent)
     return nodes, parent, [ev]

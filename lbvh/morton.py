@@ -6,6 +6,8 @@ to 63 when too many triangles share a code (see :func:`choose_key_bits`).
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 import pyopencl as cl
 
@@ -50,18 +52,30 @@ def morton_codes(ctx: Context, mem: MemoryTracker, boxes: cl.Buffer,
     return keys, values, [ev]
 
 
-def count_duplicates(ctx: Context, mem: MemoryTracker, sorted_keys: cl.Buffer, n: int,
-                     key_bits: int) -> tuple[int, list[cl.Event]]:
-    """Number of sorted keys equal to their predecessor (read back: it steers the build)."""
+def enqueue_count_duplicates(ctx: Context, mem: MemoryTracker, sorted_keys: cl.Buffer, n: int,
+                             key_bits: int) -> tuple[Callable[[], int], list[cl.Event]]:
+    """Queue the count of sorted keys equal to their predecessor and its read; the
+    returned function waits for them and gives the count (it steers the build)."""
     launch = ctx.launch(n, gpu_per_item=-(-n // 4096))
     partial = mem.alloc(4 * launch.global_size, scratch=True)
     ev = ctx.kernel(KERNEL_FILE, "count_duplicates", {"KEY_BITS": key_bits})(
         ctx.queue, (launch.global_size,), launch.local, sorted_keys, np.int32(n),
         np.int32(launch.per_item), partial)
     counts = np.empty(launch.global_size, np.uint32)
-    cl.enqueue_copy(ctx.queue, counts, partial, wait_for=[ev], is_blocking=True)
-    mem.free(partial)
-    return int(counts.sum(dtype=np.int64)), [ev]
+    read = cl.enqueue_copy(ctx.queue, counts, partial, wait_for=[ev], is_blocking=False)
+
+    def count() -> int:
+        read.wait()
+        mem.free(partial)
+        return int(counts.sum(dtype=np.int64))
+    return count, [ev]
+
+
+def count_duplicates(ctx: Context, mem: MemoryTracker, sorted_keys: cl.Buffer, n: int,
+                     key_bits: int) -> tuple[int, list[cl.Event]]:
+    """Number of sorted keys equal to their predecessor (read back: it steers the build)."""
+    count, events = enqueue_count_duplicates(ctx, mem, sorted_keys, n, key_bits)
+    return count(), events
 
 
 def choose_key_bits(duplicates_30: int, n: int,

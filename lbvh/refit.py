@@ -34,7 +34,9 @@ def refit_from_boxes(ctx: Context, boxes: cl.Buffer, prim_order: cl.Buffer, node
     numbering); ``arrivals`` is scratch of ``4 * num_nodes`` bytes.
     ``karras_ranges``: the tree comes straight from emit.cl, whose internal
     nodes still hold the far end of their range where the box goes; the walks
-    then skip the atomics of nodes whose range lies in one work-item's chunk.
+    then skip the atomics of nodes whose range lies in one work-item's chunk,
+    and the leaf records (leaf ``k`` holds slot ``k``) are written whole, so
+    emission may leave them out (``emit_hierarchy(write_leaves=False)``).
     ``per_item`` forces the chunk length (tests); by default the launch picks it.
     """
     if num_leaves is None:

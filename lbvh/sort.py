@@ -7,11 +7,12 @@ are the same in all keys.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import pyopencl as cl
 
-from .device import Context, MemoryTracker, to_device
+from .device import Context, MemoryTracker, queued_together, to_device
 
 KERNEL_FILE = "sort.cl"
 
@@ -31,9 +32,10 @@ class SortResult:
     events: list
 
 
-def varying_bits(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, n: int, key_bits: int
-                 ) -> tuple[int, list[cl.Event]]:
-    """Mask of the key bits that are not the same in every key (read back: it picks the passes)."""
+def enqueue_varying_bits(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, n: int,
+                         key_bits: int) -> tuple[Callable[[], int], list[cl.Event]]:
+    """Queue the key_bits kernel and the read of its partial ANDs and ORs; the
+    returned function waits for them and gives the mask of the bits that vary."""
     dtype = np.uint64 if key_bits == 64 else np.uint32
     launch = ctx.launch(n, gpu_per_item=-(-n // 4096))
     and_or = mem.alloc(2 * launch.global_size * np.dtype(dtype).itemsize, scratch=True)
@@ -41,9 +43,20 @@ def varying_bits(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, n: int, key_
         ctx.queue, (launch.global_size,), launch.local, keys, np.int32(n),
         np.int32(launch.per_item), and_or)
     parts = np.empty((2, launch.global_size), dtype)
-    cl.enqueue_copy(ctx.queue, parts, and_or, wait_for=[ev], is_blocking=True)
-    mem.free(and_or)
-    return int(np.bitwise_and.reduce(parts[0])) ^ int(np.bitwise_or.reduce(parts[1])), [ev]
+    read = cl.enqueue_copy(ctx.queue, parts, and_or, wait_for=[ev], is_blocking=False)
+
+    def mask() -> int:
+        read.wait()
+        mem.free(and_or)
+        return int(np.bitwise_and.reduce(parts[0])) ^ int(np.bitwise_or.reduce(parts[1]))
+    return mask, [ev]
+
+
+def varying_bits(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, n: int, key_bits: int
+                 ) -> tuple[int, list[cl.Event]]:
+    """Mask of the key bits that are not the same in every key (read back: it picks the passes)."""
+    mask, events = enqueue_varying_bits(ctx, mem, keys, n, key_bits)
+    return mask(), events
 
 
 def _defines(key_bits: int, radix_bits: int = 8) -> dict[str, int]:
@@ -79,70 +92,72 @@ def digit_shifts(mask: int, key_bits: int, radix_bits: int) -> list[int]:
 
 
 def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buffer, n: int,
-               key_bits: int, free_inputs: bool = True, radix_bits: int | None = None
-               ) -> SortResult:
+               key_bits: int, free_inputs: bool = True, radix_bits: int | None = None,
+               mask: tuple[int, list[cl.Event]] | None = None) -> SortResult:
     """Sort pairs stably by key. Returns the buffers holding the result (inputs or new ones).
 
     ``keys`` and ``values`` must be writable: the passes use them as scratch.
     With ``free_inputs`` the buffers not returned are released as soon as the
     sort no longer needs them. ``radix_bits`` overrides the device's digit width
-    (:func:`radix_bits_for`).
+    (:func:`radix_bits_for`). ``mask``: the result of :func:`varying_bits` for
+    these keys where the caller has it already; else it is read here. Nothing
+    here waits for the device once the mask is known.
     """
-    mask, events = varying_bits(ctx, mem, keys, n, key_bits)
+    mask, events = varying_bits(ctx, mem, keys, n, key_bits) if mask is None else mask
+    events = list(events)
     radix_bits = radix_bits or radix_bits_for(ctx)
-    radix = 1 << radix_bits
     shifts = digit_shifts(mask, key_bits, radix_bits)
     if not shifts or n < 2:
         return SortResult(keys, values, 0, events)
     itemsize = 8 if key_bits == 64 else 4
     launch = ctx.launch(n, min_per_item=4096, gpu_per_item=max(1, -(-n // 65536)))
+    counts = mem.alloc(4 * (1 << radix_bits) * launch.global_size, scratch=True)
+    totals = mem.alloc(4 * (1 << radix_bits), scratch=True)
+    pair = (keys, values), (mem.alloc(n * itemsize, scratch=True), mem.alloc(n * 4))
+    plan = msd_plan(mask, n, radix_bits, ctx.is_cpu)
+    # The bucket passes' shifts are copied when the buffer is made: no command.
+    local = None if plan is None else to_device(ctx, np.int32(plan[1]))
+    with queued_together(ctx):
+        src, dst = _enqueue_passes(ctx, _defines(key_bits, radix_bits), launch, n,
+                                   shifts if plan is None else [plan[0]],
+                                   None if plan is None else len(plan[1]),
+                                   pair, counts, totals, local, events)
+    if local is not None:
+        local.release()   # the runtime keeps it until the kernel is done
+    mem.free(counts, totals)
+    if free_inputs:
+        mem.free(*dst)
+    passes = len(shifts) if plan is None else 1 + len(plan[1])
+    return SortResult(src[0], src[1], passes, events)
+
+
+def _enqueue_passes(ctx: Context, defines: dict[str, int], launch, n: int, shifts: list[int],
+                    num_local: int | None, pair, counts: cl.Buffer, totals: cl.Buffer,
+                    local: cl.Buffer | None, events: list[cl.Event]):
+    """Queue the digit passes at ``shifts`` and, with ``num_local``, the bucket
+    passes of the CPU path; returns ((keys, values) holding the result, the other pair)."""
     chunks = launch.global_size
-    counts = mem.alloc(4 * radix * chunks, scratch=True)
-    totals = mem.alloc(4 * radix, scratch=True)
-    keys_alt = mem.alloc(n * itemsize, scratch=True)
-    values_alt = mem.alloc(n * 4)
-    defines = _defines(key_bits, radix_bits)
+    radix = 1 << defines["RADIX_BITS"]
     hist_k = ctx.kernel(KERNEL_FILE, "digit_histogram", defines)
     scan_k = ctx.kernel(KERNEL_FILE, "scan_counts", defines)
     scatter_k = ctx.kernel(KERNEL_FILE, "scatter", defines)
-    src, dst = (keys, values), (keys_alt, values_alt)
     scan_local = None if ctx.is_cpu else (64,)
-    plan = msd_plan(mask, n, radix_bits, ctx.is_cpu)
-    local_buf = None
-    if plan is not None:
-        local_buf = to_device(ctx, np.int32(plan[1]))   # no command: copied at creation
-        buckets_k = ctx.kernel(KERNEL_FILE, "sort_buckets", defines)
-    # The passes are queued behind a gate opened once all are queued: on a CPU
-    # device the host thread shares the cores with the kernels, and once the
-    # first pass runs it waits milliseconds for a core to queue the next one.
-    gate = cl.UserEvent(ctx.ctx)
-    wait = [gate]
-    for shift in (shifts if plan is None else [plan[0]]):
+    src, dst = pair
+    for shift in shifts:
         events.append(hist_k(ctx.queue, (chunks,), launch.local, src[0], np.int32(n),
-                             np.int32(launch.per_item), np.int32(shift), np.int32(chunks), counts,
-                             wait_for=wait))
-        wait = None
+                             np.int32(launch.per_item), np.int32(shift), np.int32(chunks), counts))
         events.append(scan_k(ctx.queue, (radix,), scan_local, counts, np.int32(chunks), totals))
         events.append(scatter_k(ctx.queue, (chunks,), launch.local, src[0], src[1], dst[0], dst[1],
                                 np.int32(n), np.int32(launch.per_item), np.int32(shift),
                                 np.int32(chunks), counts, totals))
         src, dst = dst, src
-    passes = len(shifts)
-    if plan is not None:
-        local = plan[1]
-        events.append(buckets_k(
+    if num_local is not None:
+        events.append(ctx.kernel(KERNEL_FILE, "sort_buckets", defines)(
             ctx.queue, (chunks,), launch.local, src[0], src[1], dst[0], dst[1], np.int32(n),
-            np.int32(launch.per_item), totals, local_buf, np.int32(len(local))))
-        if len(local) % 2:
+            np.int32(launch.per_item), totals, local, np.int32(num_local)))
+        if num_local % 2:
             src, dst = dst, src
-        passes = 1 + len(local)
-    gate.set_status(cl.command_execution_status.COMPLETE)
-    if local_buf is not None:
-        local_buf.release()   # freed by the runtime once the kernel is done
-    mem.free(counts, totals)
-    if free_inputs:
-        mem.free(*dst)
-    return SortResult(src[0], src[1], passes, events)
+    return src, dst
 
 
 def radix_sort_numpy(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -257,13 +257,16 @@ def test_build_refit_is_bit_identical_for_any_chunk_length(ctx, scene, per_item)
     boxes, box, _ = triangle_bounds(ctx, mem, vb, fb, n)
     keys, values, _ = morton_codes(ctx, mem, boxes, box, n, 32)
     result = radix_sort(ctx, mem, keys, values, n, 32)
-    nodes, parent, _ = emit_hierarchy(ctx, mem, result.keys, n, 32)
+    nodes, parent, _ = emit_hierarchy(ctx, mem, result.keys, n, 32, write_leaves=False)
+    # whatever the unwritten leaf records held, the refit writes them whole
+    cl.enqueue_fill_buffer(ctx.queue, nodes, np.int32(-7), 32 * (n - 1), 32 * n)
     arrivals = mem.alloc(4 * (2 * n - 1))
     refit_from_boxes(ctx, boxes, result.values, nodes, parent, arrivals, n, 2 * n - 1,
                      karras_ranges=True, per_item=per_item)
     tree = dev.from_device(ctx, nodes, NODE_DTYPE, (2 * n - 1,))
     parents = read(ctx, parent, np.int32, 2 * n - 1)
     order = read(ctx, result.values, np.int32, n)
+    assert np.array_equal(tree["a"][n - 1:], np.arange(n)) and (tree["b"][n - 1:] == -1).all()
     lower, upper = refit_numpy(tree, parents, 0, order, v, f)
     assert np.array_equal(tree["lower"], lower) and np.array_equal(tree["upper"], upper)
     assert per_item < n  # chunk boundaries are crossed
