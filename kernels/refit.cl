@@ -65,6 +65,48 @@ inline int inside_chunk(__global const int *node_words, int p, int first, int la
 }
 #endif
 
+/* The union of the boxes of slots [slot, slot + count), prefetching the box
+ * PREFETCH_AHEAD slots on (last_slot: the highest slot). */
+inline void leaf_box(__global const float4 *boxes, __global const int *prim_order, int slot,
+                     int count, int last_slot, float3 *lo, float3 *hi) {
+    if (slot + PREFETCH_AHEAD <= last_slot)
+        PREFETCH_BOX(boxes + 2 * prim_order[slot + PREFETCH_AHEAD]);
+    const int t0 = prim_order[slot];
+    float3 l = boxes[2 * t0].xyz, h = boxes[2 * t0 + 1].xyz;
+    for (int s = 1; s < count; ++s) {
+        const int t = prim_order[slot + s];
+        l = min3(l, boxes[2 * t].xyz);
+        h = max3(h, boxes[2 * t + 1].xyz);
+    }
+    *lo = l;
+    *hi = h;
+}
+
+/* The walk from `node` (box lo, hi) towards the root, as far as this walk is
+ * the second to arrive at each parent. */
+inline void climb(__global float *node_floats, __global const int *node_words,
+                  __global const int *parent, __global int *arrivals, int first, int last,
+                  int node, float3 lo, float3 hi) {
+    for (;;) {
+        const int p = parent[node];
+        if (p < 0) break;
+        const int left = node_words[8 * p + 3];
+#if KARRAS_RANGES
+        if (inside_chunk(node_words, p, first, last)) {
+            if (left == node) break;
+        } else
+#endif
+        if (!second_arrival(arrivals, p)) break;
+        const int sibling = left == node ? node_words[8 * p + 7] : left;
+        float3 slo, shi;
+        load_box_volatile(node_floats, sibling, &slo, &shi);
+        lo = min3(lo, slo);
+        hi = max3(hi, shi);
+        store_box(node_floats, p, lo, hi);
+        node = p;
+    }
+}
+
 __kernel void refit(__global const float4 *boxes /* lo, hi per triangle (bounds.cl) */,
                     __global const int *prim_order, __global float4 *nodes,
                     __global const int *parent, __global int *arrivals,
@@ -75,58 +117,38 @@ __kernel void refit(__global const float4 *boxes /* lo, hi per triangle (bounds.
     const int last = chunk_last(gid, per_item, num_leaves);
     __global float *node_floats = (__global float *)nodes;
     __global const int *node_words = (__global const int *)nodes;
+#if KARRAS_RANGES
+    /* Each leaf's box, then its walk, leaf after leaf: the box stays in
+     * registers for the walk and the sibling boxes the walk reads were
+     * mostly written a few leaves before, still in cache. Atomics are rare
+     * here (nodes straddling a chunk boundary), so they do not stall the
+     * prefetched gathers much. */
+    for (int k = first; k < last; ++k) {
+        int node = leaf_first + k;  /* leaf k holds slot k alone (emit.cl, WRITE_LEAVES=0) */
+        float3 lo, hi;
+        leaf_box(boxes, prim_order, k, 1, leaf_first, &lo, &hi);
+        nodes[2 * node] = (float4)(lo, as_float(k));
+        nodes[2 * node + 1] = (float4)(hi, as_float(-1));
+        climb(node_floats, node_words, parent, arrivals, first, last, node, lo, hi);
+    }
+#else
     /* Leaf boxes first, for the whole chunk: the gathers are independent of
      * each other, so the core overlaps their cache misses; in the walks below,
      * every atomic is a full barrier that would stall each gather in turn. */
     for (int k = first; k < last; ++k) {
-#if KARRAS_RANGES
-        /* Straight from emit.cl, which leaves the leaf records to us
-         * (WRITE_LEAVES=0): leaf k holds slot k alone. */
-        const int node = leaf_first + k, slot = k, count = 1;
-#else
         const int node = use_leaf_list ? leaf_nodes[k] : leaf_first + k;
-        const int slot = node_words[8 * node + 3];
-        const int count = -node_words[8 * node + 7];
-#endif
-        if (slot + PREFETCH_AHEAD <= leaf_first)  /* leaf_first = last slot */
-            PREFETCH_BOX(boxes + 2 * prim_order[slot + PREFETCH_AHEAD]);
-        const int t0 = prim_order[slot];
-        float3 lo = boxes[2 * t0].xyz, hi = boxes[2 * t0 + 1].xyz;
-        for (int s = 1; s < count; ++s) {
-            const int t = prim_order[slot + s];
-            lo = min3(lo, boxes[2 * t].xyz);
-            hi = max3(hi, boxes[2 * t + 1].xyz);
-        }
-#if KARRAS_RANGES
-        nodes[2 * node] = (float4)(lo, as_float(slot));
-        nodes[2 * node + 1] = (float4)(hi, as_float(-count));
-#else
+        float3 lo, hi;
+        leaf_box(boxes, prim_order, node_words[8 * node + 3], -node_words[8 * node + 7],
+                 leaf_first, &lo, &hi);
         store_box(node_floats, node, lo, hi);
-#endif
     }
     for (int k = first; k < last; ++k) {
-        int node = use_leaf_list ? leaf_nodes[k] : leaf_first + k;
+        const int node = use_leaf_list ? leaf_nodes[k] : leaf_first + k;
         float3 lo, hi;
         load_box_volatile(node_floats, node, &lo, &hi);
-        for (;;) {
-            const int p = parent[node];
-            if (p < 0) break;
-            const int left = node_words[8 * p + 3];
-#if KARRAS_RANGES
-            if (inside_chunk(node_words, p, first, last)) {
-                if (left == node) break;
-            } else
-#endif
-            if (!second_arrival(arrivals, p)) break;
-            const int sibling = left == node ? node_words[8 * p + 7] : left;
-            float3 slo, shi;
-            load_box_volatile(node_floats, sibling, &slo, &shi);
-            lo = min3(lo, slo);
-            hi = max3(hi, shi);
-            store_box(node_floats, p, lo, hi);
-            node = p;
-        }
+        climb(node_floats, node_words, parent, arrivals, first, last, node, lo, hi);
     }
+#endif
 }
 
 /* The arrival counters start at zero (a kernel: PoCL's buffer fill is slower). */
