@@ -126,7 +126,7 @@ def _check_collapse_options(c_node: float = 1.0, c_tri: float = 1.0, max_leaf_si
 def _codes_and_mask(ctx: dev.Context, mem: dev.MemoryTracker, boxes: cl.Buffer, box: cl.Buffer,
                     n: int, bits: int, events: dict[str, list]):
     """Queue the Morton codes and the varying-bits read: (keys, values, a function
-    that waits for the mask and returns what radix_sort's ``mask`` takes)."""
+    that waits for the mask: radix_sort's ``mask``)."""
     keys, values, evs = morton_codes(ctx, mem, boxes, box, n, bits)
     events["morton"] += evs
     mask, evs = enqueue_varying_bits(ctx, mem, keys, n, bits)
@@ -134,8 +134,9 @@ def _codes_and_mask(ctx: dev.Context, mem: dev.MemoryTracker, boxes: cl.Buffer, 
 
 
 def _sort_and_count(ctx: dev.Context, mem: dev.MemoryTracker, keys: cl.Buffer, values: cl.Buffer,
-                    n: int, bits: int, mask: tuple[int, list], events: dict[str, list]):
-    """Sort the codes and count their duplicates, queued together; waits for the count."""
+                    n: int, bits: int, mask, events: dict[str, list]):
+    """Sort the codes and count their duplicates, queued together; waits for the count
+    (``mask``: the waiting function of :func:`_codes_and_mask`)."""
     with dev.queued_together(ctx):
         result = radix_sort(ctx, mem, keys, values, n, bits, mask=mask)
         count, evs = enqueue_count_duplicates(ctx, mem, result.keys, n, bits)
@@ -161,7 +162,7 @@ def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl
         events["bounds"] += evs
         bits = key_bits or 32
         keys, values, mask = _codes_and_mask(ctx, mem, boxes, box, n, bits, events)
-    result, duplicates = _sort_and_count(ctx, mem, keys, values, n, bits, mask(), events)
+    result, duplicates = _sort_and_count(ctx, mem, keys, values, n, bits, mask, events)
     passes = result.passes
     choice = f"fixed: {'63' if bits == 64 else '30'} bits asked for"
     if key_bits is None:
@@ -170,7 +171,7 @@ def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl
             mem.free(result.keys, result.values)
             with dev.queued_together(ctx):
                 keys, values, mask = _codes_and_mask(ctx, mem, boxes, box, n, 64, events)
-            result, duplicates = _sort_and_count(ctx, mem, keys, values, n, 64, mask(), events)
+            result, duplicates = _sort_and_count(ctx, mem, keys, values, n, 64, mask, events)
             passes += result.passes
     mem.free(box)
 

@@ -299,7 +299,8 @@ def queued_together(ctx: Context) -> Iterator[None]:
     kernel runs, queueing the next one can wait milliseconds for a core, and
     the device idles in between. A barrier on a user event (OpenCL 1.2) holds
     the queue until every command of the block is in it. Nothing inside the
-    block may wait for the device (a blocking read would never return).
+    block may wait for a command queued inside it (it would never run);
+    waiting for one queued before the block is fine.
     """
     gate = cl.UserEvent(ctx.ctx)
     cl.enqueue_barrier(ctx.queue, wait_for=[gate])

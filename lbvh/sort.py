@@ -93,32 +93,41 @@ def digit_shifts(mask: int, key_bits: int, radix_bits: int) -> list[int]:
 
 def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buffer, n: int,
                key_bits: int, free_inputs: bool = True, radix_bits: int | None = None,
-               mask: tuple[int, list[cl.Event]] | None = None) -> SortResult:
+               mask: Callable[[], tuple[int, list[cl.Event]]] | None = None) -> SortResult:
     """Sort pairs stably by key. Returns the buffers holding the result (inputs or new ones).
 
     ``keys`` and ``values`` must be writable: the passes use them as scratch.
     With ``free_inputs`` the buffers not returned are released as soon as the
     sort no longer needs them. ``radix_bits`` overrides the device's digit width
-    (:func:`radix_bits_for`). ``mask``: the result of :func:`varying_bits` for
-    these keys where the caller has it already; else it is read here. Nothing
-    here waits for the device once the mask is known.
+    (:func:`radix_bits_for`). ``mask``: where the caller has queued the
+    varying-bits read already, a function that waits for it and returns
+    ``(mask, events)``; else the read is queued here. Either way the buffers
+    and kernels are made ready before the host waits, so that the passes are
+    queued as soon as the mask is known.
     """
-    mask, events = varying_bits(ctx, mem, keys, n, key_bits) if mask is None else mask
-    events = list(events)
+    if mask is None:
+        pending, mask_events = enqueue_varying_bits(ctx, mem, keys, n, key_bits)
+        mask = lambda: (pending(), mask_events)  # noqa: E731
     radix_bits = radix_bits or radix_bits_for(ctx)
-    shifts = digit_shifts(mask, key_bits, radix_bits)
-    if not shifts or n < 2:
-        return SortResult(keys, values, 0, events)
+    defines = _defines(key_bits, radix_bits)
+    kernels = [ctx.kernel(KERNEL_FILE, name, defines)
+               for name in ("digit_histogram", "scan_counts", "scatter", "sort_buckets")]
     itemsize = 8 if key_bits == 64 else 4
     launch = ctx.launch(n, min_per_item=4096, gpu_per_item=max(1, -(-n // 65536)))
     counts = mem.alloc(4 * (1 << radix_bits) * launch.global_size, scratch=True)
     totals = mem.alloc(4 * (1 << radix_bits), scratch=True)
     pair = (keys, values), (mem.alloc(n * itemsize, scratch=True), mem.alloc(n * 4))
-    plan = msd_plan(mask, n, radix_bits, ctx.is_cpu)
+    bits, events = mask()
+    events = list(events)
+    shifts = digit_shifts(bits, key_bits, radix_bits)
+    if not shifts or n < 2:
+        mem.free(counts, totals, *pair[1])
+        return SortResult(keys, values, 0, events)
+    plan = msd_plan(bits, n, radix_bits, ctx.is_cpu)
     # The bucket passes' shifts are copied when the buffer is made: no command.
     local = None if plan is None else to_device(ctx, np.int32(plan[1]))
     with queued_together(ctx):
-        src, dst = _enqueue_passes(ctx, _defines(key_bits, radix_bits), launch, n,
+        src, dst = _enqueue_passes(ctx, kernels, radix_bits, launch, n,
                                    shifts if plan is None else [plan[0]],
                                    None if plan is None else len(plan[1]),
                                    pair, counts, totals, local, events)
@@ -131,16 +140,14 @@ def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buf
     return SortResult(src[0], src[1], passes, events)
 
 
-def _enqueue_passes(ctx: Context, defines: dict[str, int], launch, n: int, shifts: list[int],
-                    num_local: int | None, pair, counts: cl.Buffer, totals: cl.Buffer,
-                    local: cl.Buffer | None, events: list[cl.Event]):
+def _enqueue_passes(ctx: Context, kernels: list[cl.Kernel], radix_bits: int, launch, n: int,
+                    shifts: list[int], num_local: int | None, pair, counts: cl.Buffer,
+                    totals: cl.Buffer, local: cl.Buffer | None, events: list[cl.Event]):
     """Queue the digit passes at ``shifts`` and, with ``num_local``, the bucket
     passes of the CPU path; returns ((keys, values) holding the result, the other pair)."""
     chunks = launch.global_size
-    radix = 1 << defines["RADIX_BITS"]
-    hist_k = ctx.kernel(KERNEL_FILE, "digit_histogram", defines)
-    scan_k = ctx.kernel(KERNEL_FILE, "scan_counts", defines)
-    scatter_k = ctx.kernel(KERNEL_FILE, "scatter", defines)
+    radix = 1 << radix_bits
+    hist_k, scan_k, scatter_k, buckets_k = kernels
     scan_local = None if ctx.is_cpu else (64,)
     src, dst = pair
     for shift in shifts:
@@ -152,7 +159,7 @@ def _enqueue_passes(ctx: Context, defines: dict[str, int], launch, n: int, shift
                                 np.int32(chunks), counts, totals))
         src, dst = dst, src
     if num_local is not None:
-        events.append(ctx.kernel(KERNEL_FILE, "sort_buckets", defines)(
+        events.append(buckets_k(
             ctx.queue, (chunks,), launch.local, src[0], src[1], dst[0], dst[1], np.int32(n),
             np.int32(launch.per_item), totals, local, np.int32(num_local)))
         if num_local % 2:
