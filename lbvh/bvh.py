@@ -169,7 +169,7 @@ class BVH:
         Returns ``self``.
         """
         from .refit import refit_boxes
-        from .wide import drop_wide
+        from .wide import refresh_wide
 
         v = as_vertices(vertices)
         if v.shape != self.vertices.shape:
@@ -179,7 +179,7 @@ class BVH:
                     self.parent_buf, self.num_prims, self.num_nodes, self._leaf_nodes_device())
         self.vertices_buf, self.vertices = new_buf, v
         self._host.clear()
-        drop_wide(self)   # the traversal's copies of the boxes are stale
+        refresh_wide(self)   # the traversal's copies of the boxes
         return self
 
     def leaf_walks(self) -> tuple[cl.Buffer | None, int, int]:

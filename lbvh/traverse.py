@@ -21,20 +21,21 @@ bounded by the stack and by the node count); a NaN ray that reached it through
 
 Stack
     The stack has room for the most entries an ordered traversal of the tree
-    can hold (:func:`stack_size_for`), rounded up to one of
-    :data:`STACK_BUCKETS` so that trees of similar depth share one compiled
-    program. A tree deeper than the last
-    bucket gets the last bucket: rays that would need more set their
-    ``overflow`` flag (the subtree that did not fit is skipped), which the
-    result counts. An overflow is never silent.
+    can hold (:func:`stack_need`), rounded up to one of :data:`STACK_BUCKETS`
+    so that trees of similar depth share one compiled program. The last
+    bucket, 768, holds the deepest LBVH (depth at most 95: 63 key bits and 32
+    bits of index tie-break) at the most 8-wide records can push, 7 per level
+    (665); a tree that needs more gets the last bucket: rays that would need more set
+    their ``overflow`` flag (the subtree that did not fit is skipped), which
+    the result counts. An overflow is never silent.
 
 Wide records
     The kernel reads a tree through wide records (:mod:`lbvh.wide`): up to
     8 children per record on a CPU (4 elsewhere), their boxes in rows that one
     vector slab test covers, made on the device from any tree of the layout on
-    its first query and cached on the tree (a refit drops them). On the 2-core
-    machine that traces primary rays 1.4-1.8x as fast as binary records of two
-    children did (bunny, Sponza, a 1M-triangle terrain). A tree whose records
+    its first query and cached on the tree (a refit rewrites their boxes). On
+    the 2-core machine that traces primary rays 1.4-1.8x as fast as binary
+    records of two children did (bunny, Sponza, a 1M-triangle terrain). A tree whose records
     would exceed the device's largest buffer is traversed through its own
     binary nodes. Likewise the faces are copied once in slot order
     (:func:`slot_faces_for`, 12 bytes per triangle), so that a leaf's
@@ -60,7 +61,7 @@ FLAG_OVERFLOW = 1      # the stack was full: a subtree was skipped
 FLAG_VISIT_LIMIT = 2   # more nodes visited than the tree has (a malformed, cyclic tree)
 FLAG_NAN_RAY = 4       # NaN in the ray (only through trace_buffers): not traced
 
-#: Stack sizes a program is compiled for; a tree uses the first that holds its depth.
+#: Stack sizes a program is compiled for; a tree uses the first that holds its stack_need.
 STACK_BUCKETS = (32, 64, 96, 128, 192, 256, 384, 512, 768)
 
 TRIANGLE_TESTS = {"watertight": 0, "moller": 1}

@@ -10,7 +10,8 @@ of a node. A visit then reads one record where the binary tree needs up to
 ``width - 1`` of them, and the ray takes half as many or fewer steps down.
 
 Records are made on the device from any tree of the layout, on its first
-query, and cached on the tree (:func:`wide_for`); a refit drops them. Each
+query, and cached on the tree (:func:`wide_for`); a refit rewrites their
+boxes in one launch and keeps their lanes (:func:`refresh_wide`). Each
 starts from a binary internal node and opens the internal child of largest
 surface area until it has ``width`` children; every internal child left
 becomes a record. The greedy opening is decided in float32 exactly as the
@@ -62,7 +63,11 @@ class Wide:
     tree's own node buffer when ``packed`` is False (records that could exceed
     the device's largest buffer: the kernel then walks the binary nodes).
     ``record_node`` (``int32 (count,)`` on the device, or None) is the binary
-    node each record starts from. ``stack_need`` is the most stack entries an
+    node each record starts from; ``lanes`` (``int32 (count, width)``, -1 for
+    an empty lane) the binary node of each lane and ``base`` (``int32
+    (count,)``) the index of each record's first internal child: with them a
+    refit rewrites the boxes without making the records again
+    (:func:`refresh_wide`). ``stack_need`` is the most stack entries an
     ordered traversal of the records can hold: over every root-to-record path,
     the sum of each record's children minus one. ``root_x``, ``root_y``: the
     root's reference in the records' encoding.
@@ -75,6 +80,8 @@ class Wide:
     stack_need: int
     root_x: int
     root_y: int
+    lanes: cl.Buffer | None = None
+    base: cl.Buffer | None = None
 
 
 def _root_words(bvh: Any) -> tuple[int, int]:
@@ -118,11 +125,11 @@ def _levels(bvh: Any, width: int, capacity: int) -> tuple[int, int, dict[str, cl
 
 def wide_for(bvh: Any, max_bytes: int | None = None, width: int | None = None) -> Wide:
     """The tree's wide records, made on the device on first use and cached on the
-    tree as ``bvh._wide`` (a refit drops them). Where records could exceed
-    ``max_bytes`` (default: the device's largest buffer; the bound is one
-    record per internal node) none are made: the kernel then reads the tree's
-    own nodes. ``width`` (4 or 8) defaults to
-    :func:`width_for`; a cached tree of another width is made again."""
+    tree as ``bvh._wide`` (a refit rewrites their boxes, :func:`refresh_wide`).
+    Where records could exceed ``max_bytes`` (default: the device's largest
+    buffer; the bound is one record per internal node) none are made: the
+    kernel then reads the tree's own nodes. ``width`` (4 or 8) defaults to
+    :func:`width_for`; records of another width are made again."""
     ctx = bvh.ctx
     width = width_for(ctx) if width is None else width
     if width not in WIDTHS:
@@ -148,29 +155,45 @@ def wide_for(bvh: Any, max_bytes: int | None = None, width: int | None = None) -
     count, need, bufs = _levels(bvh, width, capacity)
     nbytes = count * record_bytes(width)
     records = ctx.take_scratch(nbytes) or dev.empty(ctx, nbytes)
-    launch = ctx.launch(count, min_per_item=1024, gpu_per_item=1)
-    ctx.kernel(KERNEL_FILE, "wide_records", {"WIDTH": width})(
-        ctx.queue, (launch.global_size,), launch.local, bvh.nodes_buf, np.int32(count),
-        np.int32(launch.per_item), bufs["base"], bufs["lanes"], records)
-    record_node = dev.empty(ctx, 4 * count)
-    cl.enqueue_copy(ctx.queue, record_node, bufs["node"], byte_count=4 * count)
+    kept = {}   # the level pass's arrays, cut to the records made
+    for name, size in (("node", 4 * count), ("base", 4 * count), ("lanes", 4 * width * count)):
+        kept[name] = dev.empty(ctx, size)
+        cl.enqueue_copy(ctx.queue, kept[name], bufs[name], byte_count=size)
+    wide = Wide(records, True, width, count, kept["node"], need, 0, 0, kept["lanes"], kept["base"])
+    _write_records(bvh, wide)
     ctx.queue.finish()
     for buf in bufs.values():
         buf.release()
     bvh._pooled.append((records, nbytes))   # back to the pool with the tree
-    wide = Wide(records, True, width, count, record_node, need, 0, 0)
     bvh._wide = wide
     return wide
 
 
+def _write_records(bvh: Any, wide: Wide) -> cl.Event:
+    launch = bvh.ctx.launch(wide.count, min_per_item=1024, gpu_per_item=1)
+    return bvh.ctx.kernel(KERNEL_FILE, "wide_records", {"WIDTH": wide.width})(
+        bvh.ctx.queue, (launch.global_size,), launch.local, bvh.nodes_buf, np.int32(wide.count),
+        np.int32(launch.per_item), wide.base, wide.lanes, wide.buffer)
+
+
+def refresh_wide(bvh: Any) -> None:
+    """After a refit (same topology, new boxes): rewrite the cached records' boxes
+    from the nodes, keeping their lanes (one launch; the lanes were chosen by the
+    old boxes' areas, which changes the speed of a query, never its answer)."""
+    wide = getattr(bvh, "_wide", None)
+    if wide is not None and wide.packed and wide.count:
+        _write_records(bvh, wide)
+
+
 def drop_wide(bvh: Any) -> None:
-    """Forget the tree's wide records (after a refit); their buffer goes to the
-    context's pool, where the next :func:`wide_for` of the same size finds it."""
+    """Forget the tree's wide records; their buffer goes to the context's pool,
+    where the next :func:`wide_for` of the same size finds it."""
     wide, bvh._wide = getattr(bvh, "_wide", None), None
     if wide is None or not wide.packed:
         return
-    if wide.record_node is not None:
-        wide.record_node.release()
+    for buf in (wide.record_node, wide.lanes, wide.base):
+        if buf is not None:
+            buf.release()
     for k, (buf, nbytes) in enumerate(bvh._pooled):
         if buf is wide.buffer:
             del bvh._pooled[k]

@@ -20,7 +20,7 @@ from conftest import random_soup, shared_mesh, shipped_mesh
 from lbvh import traverse as tr
 from lbvh.layout import make_nodes
 from lbvh.oracle import brute_force, hits_on
-from lbvh.wide import WIDTHS, wide_for
+from lbvh.wide import WIDTHS, read_records, wide_for
 
 U = 2.0 ** -24
 T_BOUND = 16 * U
@@ -659,21 +659,39 @@ def test_traversal_through_the_nodes_equals_the_wide_records():
             assert got.nodes_visited.sum() < binary.nodes_visited.sum()
 
 
-def test_refit_drops_the_wide_records():
-    """Records copy the boxes: after a refit the next query must see the moved mesh."""
+def test_refit_rewrites_the_wide_records_boxes():
+    """Records copy the boxes: after a refit the next query must see the moved mesh.
+    The records keep their lanes (one launch, no new records) and take the new boxes."""
     v, f = scene("suzanne")
     o, d = ray_set("suzanne")
     bvh = lbvh.build(v, f)
     before = bvh.intersect(o, d)
     first = wide_for(bvh)
-    shift = np.float32([0.0, 0.0, 0.5])
-    bvh.refit(v + shift)
-    assert bvh._wide is None
-    moved = bvh.intersect(o, d)
-    assert wide_for(bvh) is not first
-    fresh = lbvh.build(v + shift, f).intersect(o, d)
-    assert (moved.prim == fresh.prim).all() and (moved.t == fresh.t).all()
-    assert not (moved.t[before.hit] == before.t[before.hit]).all()
+    lanes_before = dev_lanes(bvh, first)
+    rng = np.random.default_rng(3)
+    moved = (v + np.float32([0.0, 0.0, 0.5])
+             + rng.normal(0, 0.02, v.shape).astype(np.float32)).astype(np.float32)
+    bvh.refit(moved)
+    assert wide_for(bvh) is first
+    assert np.array_equal(dev_lanes(bvh, first), lanes_before)
+    records, _ = read_records(bvh, first)
+    lanes = lanes_before
+    present = lanes >= 0
+    nodes = bvh.nodes
+    for row, (field, axis) in enumerate([("lower", 0), ("upper", 0), ("lower", 1), ("upper", 1),
+                                         ("lower", 2), ("upper", 2)]):
+        want = nodes[field][np.maximum(lanes, 0), axis]
+        assert np.array_equal(records[:, row][present], want[present]), (field, axis)
+    got = bvh.intersect(o, d)
+    fresh = lbvh.build(moved, f).intersect(o, d)
+    _same_hits(got, fresh, moved, f, o, d, "refit")
+    assert not (got.t[before.hit] == before.t[before.hit]).all()
+
+
+def dev_lanes(bvh, wide):
+    lanes = np.empty((wide.count, wide.width), np.int32)
+    cl.enqueue_copy(bvh.ctx.queue, lanes, wide.lanes, is_blocking=True)
+    return lanes
 
 
 def test_a_child_index_out_of_range_is_refused_before_tracing():

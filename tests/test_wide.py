@@ -8,6 +8,7 @@ areas, so everything else is compared exactly.
 from __future__ import annotations
 
 import numpy as np
+import pyopencl as cl
 import pytest
 
 import lbvh
@@ -42,6 +43,11 @@ def assert_equal_to_twin(bvh, width):
     want_x, want_y = mine[:, 6].view(np.int32), mine[:, 7].view(np.int32)
     assert (got_y == want_y).all()
     # a leaf lane keeps its words; an internal lane names the record of the same node
+    # the lanes kept for refits: the same binary nodes, lane by lane
+    if wide.count:
+        lanes = np.empty((wide.count, width), np.int32)
+        cl.enqueue_copy(bvh.ctx.queue, lanes, wide.lanes, is_blocking=True)
+        assert np.array_equal(lanes, twin.lanes[position[record_node]])
     present = twin.lanes[position[record_node]] >= 0
     inner = present & (want_y == 0)
     assert (got_x[~inner] == want_x[~inner]).all()
