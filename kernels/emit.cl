@@ -29,8 +29,10 @@
  *
  * Numbering (docs/layout.md): internal node i is node i, leaf j is node n-1+j
  * and holds sorted slot j. Parent links are written by the parent. The far
- * end j of node i's range goes where its lower.x will be: the build's refit
- * reads it (refit.cl, KARRAS_RANGES) and writes the box over it.
+ * end j of node i's range goes where its lower.x will be, and a zero where
+ * its lower.y will be: the build's refit (refit.cl, KARRAS_RANGES) reads the
+ * one, counts the arrivals at the node in the other, and writes the box over
+ * both.
  *
  * KEY_BITS (define): 32 or 64.
  * WRITE_LEAVES (define, default 1): 0 leaves the leaf records alone; the
@@ -183,6 +185,7 @@ inline void emit_lanes(__global const key_t *keys, int n, int i0, int limit,
     for (int k = 0; k < LANES && i0 + k < limit; ++k) {
         set_children(node_words, node.s[k], left.s[k], right.s[k]);
         node_words[8 * node.s[k]] = far.s[k];
+        node_words[8 * node.s[k] + 1] = 0;  /* the build's refit counts arrivals here */
         parent[left.s[k]] = node.s[k];
         parent[right.s[k]] = node.s[k];
     }

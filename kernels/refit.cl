@@ -26,7 +26,9 @@
  * chunk boundary, a few dozen per chunk, pay for the atomic. On a GPU (one
  * leaf per work-item) every internal node straddles: the plain scheme.
  * The leaf records are written whole here (emit.cl ran with WRITE_LEAVES=0):
- * leaf n-1+k holds slot k alone.
+ * leaf n-1+k holds slot k alone. The arrival counter of a straddling node is
+ * its own lower.y word, which emit.cl zeroed and the second arrival writes
+ * the box over: no counter array, no pass to clear one.
  */
 #include "common.h"
 
@@ -94,9 +96,12 @@ inline void climb(__global float *node_floats, __global const int *node_words,
 #if KARRAS_RANGES
         if (inside_chunk(node_words, p, first, last)) {
             if (left == node) break;
-        } else
-#endif
+        } else if (!second_arrival((__global int *)node_floats, 8 * p + 1)) {
+            break;  /* the counter is p's lower.y word, zeroed by emit.cl */
+        }
+#else
         if (!second_arrival(arrivals, p)) break;
+#endif
         const int sibling = left == node ? node_words[8 * p + 7] : left;
         float3 slo, shi;
         load_box_volatile(node_floats, sibling, &slo, &shi);

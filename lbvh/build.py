@@ -180,18 +180,17 @@ def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl
         events["emit"] += evs
         mem.free(result.keys)
         prim_order = result.values
-        arrivals = mem.alloc(4 * (2 * n - 1), scratch=True)
-        events["refit"] += refit_from_boxes(ctx, boxes, prim_order, nodes, parent, arrivals, n,
+        events["refit"] += refit_from_boxes(ctx, boxes, prim_order, nodes, parent, None, n,
                                             2 * n - 1, karras_ranges=True)
         mem.free(boxes)
         if treelet_rounds:
             cost = mem.alloc(4 * (2 * n - 1), scratch=True)
+            arrivals = mem.alloc(4 * (2 * n - 1), scratch=True)
             events["restructure"] = restructure_treelets(
                 ctx, nodes, parent, cost, arrivals, 2 * n - 1, 0, treelet_rounds, n - 1, n)
-            mem.free(cost)
+            mem.free(cost, arrivals)
     ctx.queue.finish()
     wall = time.perf_counter() - t0
-    mem.free(arrivals)
     mem.close()
 
     phase_seconds = {phase: dev.event_seconds(evs) for phase, evs in events.items()}

@@ -25,35 +25,42 @@ def clear_arrivals(ctx: Context, arrivals: cl.Buffer, count: int) -> cl.Event:
 
 
 def refit_from_boxes(ctx: Context, boxes: cl.Buffer, prim_order: cl.Buffer, nodes: cl.Buffer,
-                     parent: cl.Buffer, arrivals: cl.Buffer, num_prims: int, num_nodes: int,
-                     leaf_nodes: cl.Buffer | None = None, num_leaves: int | None = None,
-                     karras_ranges: bool = False, per_item: int | None = None) -> list[cl.Event]:
+                     parent: cl.Buffer, arrivals: cl.Buffer | None, num_prims: int,
+                     num_nodes: int, leaf_nodes: cl.Buffer | None = None,
+                     num_leaves: int | None = None, karras_ranges: bool = False,
+                     per_item: int | None = None) -> list[cl.Event]:
     """Recompute every node box in place from the triangle boxes (``2 * num_prims`` float4).
 
     Without ``leaf_nodes`` the leaves are nodes ``num_prims - 1 ..`` (Karras
     numbering); ``arrivals`` is scratch of ``4 * num_nodes`` bytes.
     ``karras_ranges``: the tree comes straight from emit.cl, whose internal
-    nodes still hold the far end of their range where the box goes; the walks
-    then skip the atomics of nodes whose range lies in one work-item's chunk,
-    and the leaf records (leaf ``k`` holds slot ``k``) are written whole, so
-    emission may leave them out (``emit_hierarchy(write_leaves=False)``).
+    nodes still hold the far end of their range where lower.x goes and a zero
+    where lower.y goes; the walks then skip the atomics of nodes whose range
+    lies in one work-item's chunk, count the arrivals at the others in that
+    zero (``arrivals`` is not used and may be None), and write the leaf records
+    whole (leaf ``k`` holds slot ``k``), so emission may leave them out
+    (``emit_hierarchy(write_leaves=False)``).
     ``per_item`` forces the chunk length (tests); by default the launch picks it.
     """
     if num_leaves is None:
         num_leaves = num_prims if leaf_nodes is None else leaf_nodes.size // 4
     if karras_ranges and leaf_nodes is not None:
         raise ValueError("karras_ranges needs the Karras numbering of the leaves, not a leaf list")
-    ev0 = clear_arrivals(ctx, arrivals, num_nodes)
+    events = []
+    if karras_ranges:
+        arrivals = nodes   # an argument the kernel does not read
+    else:
+        events.append(clear_arrivals(ctx, arrivals, num_nodes))
     launch = (ctx.launch(num_leaves, min_per_item=256) if per_item is None
               else ctx.launch_chunks(num_leaves, per_item))
     use_list = leaf_nodes is not None
     leaf_arg = leaf_nodes if use_list else arrivals  # not read by the kernel in that case
     defines = {"KARRAS_RANGES": int(karras_ranges), "CLANG_PREFETCH": int(ctx.compiler_is_clang)}
-    ev = ctx.kernel(KERNEL_FILE, "refit", defines)(
+    events.append(ctx.kernel(KERNEL_FILE, "refit", defines)(
         ctx.queue, (launch.global_size,), launch.local, boxes, prim_order, nodes, parent,
         arrivals, leaf_arg, np.int32(use_list), np.int32(num_prims - 1), np.int32(num_leaves),
-        np.int32(launch.per_item))
-    return [ev0, ev]
+        np.int32(launch.per_item)))
+    return events
 
 
 def refit_boxes(ctx: Context, vertices: cl.Buffer, faces: cl.Buffer, prim_order: cl.Buffer,

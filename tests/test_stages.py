@@ -154,10 +154,20 @@ def test_msd_plan():
     assert msd_plan(((1 << 11) - 1) << 40 | 1 << 35, MSD_MIN_KEYS, 11, True) == (40, [30])
 
 
+def garbage_in_the_pool(ctx, nbytes):
+    """A pooled buffer of ``nbytes`` full of -7, for the next allocation of that size:
+    what a kernel must write cannot come from fresh zero pages by luck."""
+    buf = cl.Buffer(ctx.ctx, cl.mem_flags.READ_WRITE, nbytes)
+    cl.enqueue_fill_buffer(ctx.queue, buf, np.int32(-7), 0, nbytes)
+    ctx.queue.finish()
+    ctx.give_scratch(buf, nbytes)
+
+
 def emitted_tree(ctx, sorted_keys, key_bits, per_item=None):
     n = len(sorted_keys)
     mem = dev.MemoryTracker(ctx)
     kb = dev.to_device(ctx, sorted_keys)
+    garbage_in_the_pool(ctx, NODE_DTYPE.itemsize * (2 * n - 1))
     nodes, parent, _ = emit_hierarchy(ctx, mem, kb, n, key_bits, per_item)
     return dev.from_device(ctx, nodes, NODE_DTYPE, (2 * n - 1,)), read(ctx, parent, np.int32, 2 * n - 1)
 
@@ -195,6 +205,8 @@ def test_emission_matches_serial_karras(ctx, key_bits, kind, n, per_item):
     ends = np.arange(n - 1)
     assert np.all((first[: n - 1] == ends) | (last[: n - 1] == ends))
     assert np.array_equal(far, np.where(first[: n - 1] == ends, last[: n - 1], first[: n - 1]))
+    # and the zero the build's refit counts arrivals in
+    assert (nodes["lower"][: n - 1, 1].view(np.int32) == 0).all()
 
 
 def slot_ranges(children, parent, n):
@@ -257,11 +269,11 @@ def test_build_refit_is_bit_identical_for_any_chunk_length(ctx, scene, per_item)
     boxes, box, _ = triangle_bounds(ctx, mem, vb, fb, n)
     keys, values, _ = morton_codes(ctx, mem, boxes, box, n, 32)
     result = radix_sort(ctx, mem, keys, values, n, 32)
+    garbage_in_the_pool(ctx, NODE_DTYPE.itemsize * (2 * n - 1))
     nodes, parent, _ = emit_hierarchy(ctx, mem, result.keys, n, 32, write_leaves=False)
-    # whatever the unwritten leaf records held, the refit writes them whole
-    cl.enqueue_fill_buffer(ctx.queue, nodes, np.int32(-7), 32 * (n - 1), 32 * n)
-    arrivals = mem.alloc(4 * (2 * n - 1))
-    refit_from_boxes(ctx, boxes, result.values, nodes, parent, arrivals, n, 2 * n - 1,
+    # whatever the unwritten leaf records held (-7 here), the refit writes them whole
+    # no counter array: the straddling nodes count their arrivals in their lower.y word
+    refit_from_boxes(ctx, boxes, result.values, nodes, parent, None, n, 2 * n - 1,
                      karras_ranges=True, per_item=per_item)
     tree = dev.from_device(ctx, nodes, NODE_DTYPE, (2 * n - 1,))
     parents = read(ctx, parent, np.int32, 2 * n - 1)
