@@ -24,7 +24,9 @@ round, so that the machine's noise hits all alike):
   the default ``lbvh.build`` tree (``lbvh``: key bits auto), the same with
   ``collapse=True`` (``lbvh+collapse``), the same with two rounds of treelet
   restructuring before the collapse (``lbvh+treelets2+collapse``: a lower SAH
-  cost for a longer build)
+  cost for a longer build), the default tree again with Moller-Trumbore instead
+  of the watertight test (``lbvh (moller)``: the price of watertightness, in a
+  table of its own with both tests' disagreements, Moller's leaks among them)
   and, with ``--sah``, the serial SAH
   tree on scenes up to :data:`SAH_MAX_TRIANGLES` triangles;
 * ours ``(kernel only)``: the traversal kernel's device time from OpenCL event
@@ -115,6 +117,8 @@ TREELET_ROUNDS = 2
 TREELETS = f"{OURS}+treelets{TREELET_ROUNDS}+collapse"
 #: The trees the targets are judged on, each on its own line (``sah``: with ``--sah``).
 TARGET_TREES = (OURS, TREELETS, "sah")
+#: The default tree traced with Moller-Trumbore instead of the watertight test.
+MOLLER = f"{OURS} (moller)"
 #: Issue 3's targets: closest hit, our throughput over the peer's, at least this much.
 TARGETS = (("embree-2t", 0.3), ("warp", 1.5))
 WARP_CONSTRUCTOR = "sah"
@@ -177,16 +181,19 @@ class Answer:
 
 
 class OurTree:
-    """One of our trees through the public API (host work included)."""
+    """One of our trees through the public API (host work included), with the
+    watertight triangle test or, for the price of watertightness, Moller-Trumbore."""
 
-    def __init__(self, bvh: lbvh.BVH) -> None:
+    def __init__(self, bvh: lbvh.BVH, triangle_test: str = "watertight") -> None:
         self.bvh = bvh
+        self.triangle_test = triangle_test
 
     def trace(self, rays: RaySet) -> tuple[Answer, None]:
         if rays.closest:
-            h = self.bvh.intersect(rays.origins, rays.directions)
+            h = self.bvh.intersect(rays.origins, rays.directions, triangle_test=self.triangle_test)
         else:
-            h = self.bvh.occluded(rays.origins, rays.directions, tmax=rays.tmax, return_hits=True)
+            h = self.bvh.occluded(rays.origins, rays.directions, tmax=rays.tmax, return_hits=True,
+                                  triangle_test=self.triangle_test)
         return Answer(h.hit, h.prim, h.t, int(h.overflow_count)), None
 
     def close(self) -> None:
@@ -434,6 +441,9 @@ def make_contestants(scene: bb.Scene, ctx: dev.Context, peers: dict[str, Any],
         bvh.validate()
         family = "sah" if name == "sah" else "lbvh"
         out.append(Contestant(bb.Variant(name, family, options), OurTree(bvh), None, "wall", seconds))
+        if name == OURS:   # the same tree with the faster, leaky triangle test
+            out.append(Contestant(bb.Variant(MOLLER, "moller", options), OurTree(bvh, "moller"),
+                                  None, "wall", seconds))
         if not no_kernel:
             kernels.append(Contestant(bb.Variant(f"{name} (kernel only)", "kernel", options),
                                       OurKernel(bvh), None, "device", seconds))
@@ -707,11 +717,34 @@ def targets(rows: list[dict], scene_names: list[str]) -> list[dict]:
     return out
 
 
+def watertight_price(rows: list[dict]) -> list[dict]:
+    """Per scene and query: the default tree's throughput with the watertight test
+    and with Moller-Trumbore (same tree, same rays, same rounds), Moller over
+    watertight as the ratio of the medians and the range of the per-round ratios,
+    and each one's disagreements with the reference (Moller's leaks among them)."""
+    out = []
+    by = {(r["scene"], r["query"], r["tracer"]): r for r in rows}
+    for (scene, query, tracer), tight in by.items():
+        fast = by.get((scene, query, MOLLER))
+        if tracer != OURS or fast is None:
+            continue
+        rounds = [a / b for a, b in zip(tight["samples"], fast["samples"])]
+        out.append({"scene": scene, "query": query,
+                    "watertight_rays_per_second": tight["rays_per_second"],
+                    "moller_rays_per_second": fast["rays_per_second"],
+                    "ratio": fast["rays_per_second"] / tight["rays_per_second"],
+                    "round_min": min(rounds), "round_max": max(rounds),
+                    "watertight_agreement": tight["agreement"],
+                    "moller_agreement": fast["agreement"]})
+    return out
+
+
 def cpu_use(rows: list[dict]) -> dict[str, float]:
     """Median CPU use per tracer kind (tree names dropped: ``lbvh+collapse`` counts as ``lbvh``)."""
     kinds: dict[str, list[float]] = {}
     for r in rows:
-        kind = {"lbvh": "ours", "sah": "ours", "kernel": "ours (kernel only)"}.get(r["family"], r["tracer"])
+        kind = {"lbvh": "ours", "sah": "ours", "moller": "ours",
+                "kernel": "ours (kernel only)"}.get(r["family"], r["tracer"])
         kinds.setdefault(kind, []).append(r["cpu_over_wall"])
     return {k: float(statistics.median(v)) for k, v in kinds.items()}
 
@@ -795,6 +828,17 @@ def markdown(report: dict) -> str:
         lines.append(f"- {t['scene']}, {t['ours']}: >= {t['at_least']}x {t['peer']}{measured} "
                      f"— **{t['status']}**"
                      + (f" (caveat: {t['caveat']})" if t["caveat"] else ""))
+    lines += ["", f"## The price of watertightness (`{OURS}` tree through the API: the watertight "
+              "test of Woop et al. 2013 against Moller-Trumbore, same rays, same rounds)", "",
+              "| scene | query | watertight Mrays/s | Moller Mrays/s | Moller / watertight "
+              "| watertight disagree (oracle) | Moller disagree (oracle) |",
+              "|---|---|---:|---:|---:|---|---|"]
+    for w in report["watertight_price"]:
+        tight = fmt_agreement({"agreement": w["watertight_agreement"]})[2]
+        fast = fmt_agreement({"agreement": w["moller_agreement"]})[2]
+        lines.append(
+            f"| {w['scene']} | {w['query']} | {w['watertight_rays_per_second'] / 1e6:.2f} "
+            f"| {w['moller_rays_per_second'] / 1e6:.2f} | {fmt_ratio(w)} | {tight} | {fast} |")
     lines += ["", "## Every tracer, every query", "",
               "| scene | query | tracer | Mrays/s | ms | spread | CPU use | other load | / embree-2t "
               "| / warp | agree | agree (ties) | disagree (oracle) | overflow |",
@@ -914,6 +958,7 @@ def main(argv: list[str] | None = None) -> dict:
         "scenes": scenes, "skipped": skipped, "rows": rows,
         "closest_ratios": closest_ratios(rows),
         "targets": targets(rows, [s["name"] for s in scenes]),
+        "watertight_price": watertight_price(rows),
         "cpu_use": cpu_use(rows),
         "other_load": {"median": median_or_none([r["other_load"] for r in rows]),
                        "max": max((r["other_load"] for r in rows if r["other_load"] is not None),

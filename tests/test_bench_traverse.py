@@ -32,7 +32,7 @@ def _finite_positive(x) -> bool:
 
 def _expected_tracers() -> set[str]:
     ours = [bench.OURS, f"{bench.OURS}+collapse", bench.TREELETS]
-    names = set(ours)
+    names = set(ours) | {bench.MOLLER}
     if bench.kernel_only_missing() is None:
         names |= {f"{n} (kernel only)" for n in ours}
     if _importable("embreex"):
@@ -139,19 +139,38 @@ def test_quick_ratios_and_targets(quick):
                 assert (peer, "NOT MEASURED") in statuses
 
 
+def test_quick_prices_watertightness_on_every_query(quick):
+    """The default tree with Moller-Trumbore beside the watertight test, same rounds:
+    a ratio for every query, from the rows' own samples."""
+    _, report = quick
+    rows = {(r["query"], r["tracer"]): r for r in report["rows"]}
+    price = {w["query"]: w for w in report["watertight_price"]}
+    assert set(price) == set(bench.QUERIES)
+    for query, w in price.items():
+        tight, fast = rows[(query, bench.OURS)], rows[(query, bench.MOLLER)]
+        assert w["ratio"] == pytest.approx(tight["seconds"] / fast["seconds"])
+        rounds = [a / b for a, b in zip(tight["samples"], fast["samples"])]
+        assert (w["round_min"], w["round_max"]) == (min(rounds), max(rounds))
+        assert len(rounds) == report["settings"]["repeats"]
+        assert w["moller_agreement"] == fast["agreement"]
+        assert w["watertight_agreement"] == tight["agreement"]
+
+
 def test_quick_markdown_has_the_tables_and_targets(quick):
     out, report = quick
     text = (out / "bench_traverse.md").read_text()
     for heading in ("## Closest hit: ours against the peers", "## Targets", "## Every tracer, every query"):
         assert heading in text
-    assert text.count(f"| {report['scenes'][0]['name']} | ") == len(report["rows"]) + len(report["closest_ratios"])
+    assert "## The price of watertightness" in text
+    assert text.count(f"| {report['scenes'][0]['name']} | ") == (
+        len(report["rows"]) + len(report["closest_ratios"]) + len(report["watertight_price"]))
     assert text.count("**MET**") + text.count("**NOT MET**") + text.count("NOT MEASURED") == len(report["targets"])
 
 
 def test_without_peers_the_reference_is_ours_and_targets_are_not_measured(tmp_path):
     report = bench.main(["--quick", "--rays", "24x24", "--repeats", "1", "--no-peers",
                          "--out", str(tmp_path)])
-    assert {r["family"] for r in report["rows"]} <= {"lbvh", "kernel"}
+    assert {r["family"] for r in report["rows"]} <= {"lbvh", "moller", "kernel"}
     assert report["scenes"][0]["comparisons"]["closest"]["reference"] == bench.FALLBACK_REFERENCE
     assert report["targets"] and all(t["status"].startswith("NOT MEASURED") for t in report["targets"])
 
