@@ -125,18 +125,17 @@ def _check_collapse_options(c_node: float = 1.0, c_tri: float = 1.0, max_leaf_si
 
 def _codes_and_mask(ctx: dev.Context, mem: dev.MemoryTracker, boxes: cl.Buffer, box: cl.Buffer,
                     n: int, bits: int, events: dict[str, list]):
-    """Queue the Morton codes and the varying-bits read: (keys, values, a function
-    that waits for the mask: radix_sort's ``mask``)."""
+    """Queue the Morton codes and the varying-bits read: (keys, values, what
+    radix_sort's ``mask`` takes)."""
     keys, values, evs = morton_codes(ctx, mem, boxes, box, n, bits)
     events["morton"] += evs
-    mask, evs = enqueue_varying_bits(ctx, mem, keys, n, bits)
-    return keys, values, lambda: (mask(), evs)
+    return keys, values, enqueue_varying_bits(ctx, mem, keys, n, bits)
 
 
 def _sort_and_count(ctx: dev.Context, mem: dev.MemoryTracker, keys: cl.Buffer, values: cl.Buffer,
                     n: int, bits: int, mask, events: dict[str, list]):
     """Sort the codes and count their duplicates, queued together; waits for the count
-    (``mask``: the waiting function of :func:`_codes_and_mask`)."""
+    (``mask``: from :func:`_codes_and_mask`)."""
     with dev.queued_together(ctx):
         result = radix_sort(ctx, mem, keys, values, n, bits, mask=mask)
         count, evs = enqueue_count_duplicates(ctx, mem, result.keys, n, bits)

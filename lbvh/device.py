@@ -17,7 +17,7 @@ import os
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 import pyopencl as cl
@@ -308,6 +308,20 @@ def queued_together(ctx: Context) -> Iterator[None]:
         yield
     finally:
         gate.set_status(cl.command_execution_status.COMPLETE)
+
+
+def read_later(ctx: Context, mem: "MemoryTracker", partial: cl.Buffer, host: np.ndarray,
+               after: cl.Event, reduce: Callable[[np.ndarray], int]) -> Callable[[], int]:
+    """Queue the read of ``partial`` (a kernel's per-work-item results, written by
+    ``after``) into ``host`` without waiting; the returned function waits for
+    it, gives ``partial`` back to ``mem`` and returns ``reduce(host)``."""
+    read = cl.enqueue_copy(ctx.queue, host, partial, wait_for=[after], is_blocking=False)
+
+    def result() -> int:
+        read.wait()
+        mem.free(partial)
+        return reduce(host)
+    return result
 
 
 def to_device(ctx: Context, array: np.ndarray) -> cl.Buffer:

@@ -11,7 +11,7 @@ from typing import Callable
 import numpy as np
 import pyopencl as cl
 
-from .device import Context, MemoryTracker
+from .device import Context, MemoryTracker, read_later
 
 KERNEL_FILE = "morton.cl"
 #: codes per vector in morton.cl (LANES): CPU chunks are whole multiples of it
@@ -61,13 +61,8 @@ def enqueue_count_duplicates(ctx: Context, mem: MemoryTracker, sorted_keys: cl.B
     ev = ctx.kernel(KERNEL_FILE, "count_duplicates", {"KEY_BITS": key_bits})(
         ctx.queue, (launch.global_size,), launch.local, sorted_keys, np.int32(n),
         np.int32(launch.per_item), partial)
-    counts = np.empty(launch.global_size, np.uint32)
-    read = cl.enqueue_copy(ctx.queue, counts, partial, wait_for=[ev], is_blocking=False)
-
-    def count() -> int:
-        read.wait()
-        mem.free(partial)
-        return int(counts.sum(dtype=np.int64))
+    count = read_later(ctx, mem, partial, np.empty(launch.global_size, np.uint32), ev,
+                       lambda c: int(c.sum(dtype=np.int64)))
     return count, [ev]
 
 

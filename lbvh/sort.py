@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 import pyopencl as cl
 
-from .device import Context, MemoryTracker, queued_together, to_device
+from .device import Context, MemoryTracker, queued_together, read_later, to_device
 
 KERNEL_FILE = "sort.cl"
 
@@ -42,13 +42,8 @@ def enqueue_varying_bits(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, n: i
     ev = ctx.kernel(KERNEL_FILE, "key_bits", _defines(key_bits))(
         ctx.queue, (launch.global_size,), launch.local, keys, np.int32(n),
         np.int32(launch.per_item), and_or)
-    parts = np.empty((2, launch.global_size), dtype)
-    read = cl.enqueue_copy(ctx.queue, parts, and_or, wait_for=[ev], is_blocking=False)
-
-    def mask() -> int:
-        read.wait()
-        mem.free(and_or)
-        return int(np.bitwise_and.reduce(parts[0])) ^ int(np.bitwise_or.reduce(parts[1]))
+    mask = read_later(ctx, mem, and_or, np.empty((2, launch.global_size), dtype), ev,
+                      lambda p: int(np.bitwise_and.reduce(p[0])) ^ int(np.bitwise_or.reduce(p[1])))
     return mask, [ev]
 
 
@@ -93,21 +88,19 @@ def digit_shifts(mask: int, key_bits: int, radix_bits: int) -> list[int]:
 
 def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buffer, n: int,
                key_bits: int, free_inputs: bool = True, radix_bits: int | None = None,
-               mask: Callable[[], tuple[int, list[cl.Event]]] | None = None) -> SortResult:
+               mask: tuple[Callable[[], int], list[cl.Event]] | None = None) -> SortResult:
     """Sort pairs stably by key. Returns the buffers holding the result (inputs or new ones).
 
     ``keys`` and ``values`` must be writable: the passes use them as scratch.
     With ``free_inputs`` the buffers not returned are released as soon as the
     sort no longer needs them. ``radix_bits`` overrides the device's digit width
     (:func:`radix_bits_for`). ``mask``: where the caller has queued the
-    varying-bits read already, a function that waits for it and returns
-    ``(mask, events)``; else the read is queued here. Either way the buffers
-    and kernels are made ready before the host waits, so that the passes are
-    queued as soon as the mask is known.
+    varying-bits read already, what :func:`enqueue_varying_bits` returned;
+    else the read is queued here. Either way the buffers and kernels are made
+    ready before the host waits, so that the passes are queued as soon as the
+    mask is known.
     """
-    if mask is None:
-        pending, mask_events = enqueue_varying_bits(ctx, mem, keys, n, key_bits)
-        mask = lambda: (pending(), mask_events)  # noqa: E731
+    pending, mask_events = mask or enqueue_varying_bits(ctx, mem, keys, n, key_bits)
     radix_bits = radix_bits or radix_bits_for(ctx)
     defines = _defines(key_bits, radix_bits)
     kernels = [ctx.kernel(KERNEL_FILE, name, defines)
@@ -117,8 +110,7 @@ def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buf
     counts = mem.alloc(4 * (1 << radix_bits) * launch.global_size, scratch=True)
     totals = mem.alloc(4 * (1 << radix_bits), scratch=True)
     pair = (keys, values), (mem.alloc(n * itemsize, scratch=True), mem.alloc(n * 4))
-    bits, events = mask()
-    events = list(events)
+    bits, events = pending(), list(mask_events)
     shifts = digit_shifts(bits, key_bits, radix_bits)
     if not shifts or n < 2:
         mem.free(counts, totals, *pair[1])
