@@ -95,11 +95,21 @@ __kernel void scatter(__global const key_t *keys_in, __global const uint *values
         offset[d] = base + counts[d * num_chunks + gid];
         base += digit_totals[d];
     }
+    /* The counter of the current run of equal digits stays in a register:
+     * coherent meshes give long runs, whose increments would otherwise each
+     * wait for the previous store to the same counter. */
+    uint run_digit = 0, pos = offset[0];
     for (int i = first; i < last; ++i) {
-        key_t k = keys_in[i];
-        uint pos = offset[digit_of(k, shift)]++;
+        const key_t k = keys_in[i];
+        const uint d = digit_of(k, shift);
+        if (d != run_digit) {
+            offset[run_digit] = pos;
+            run_digit = d;
+            pos = offset[d];
+        }
         keys_out[pos] = k;
         values_out[pos] = values_in[i];
+        ++pos;
     }
 }
 
