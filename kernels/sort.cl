@@ -54,17 +54,21 @@ __kernel void digit_histogram(__global const key_t *keys, const int n, const int
     if (gid >= num_chunks) return;
     const int first = chunk_first(gid, per_item, n);
     const int last = chunk_last(gid, per_item, n);
-    /* Two histograms, for even and odd keys: runs of equal digits (coherent
-     * meshes) would otherwise chain every increment on the previous one. */
-    uint hist[RADIX], hist_odd[RADIX];
-    for (int d = 0; d < RADIX; ++d) hist[d] = hist_odd[d] = 0;
+    /* Four histograms, one per key index mod 4: runs of equal digits
+     * (coherent meshes) would otherwise chain every increment on the
+     * previous one. */
+    uint hist[4][RADIX];
+    for (int d = 0; d < RADIX; ++d) hist[0][d] = hist[1][d] = hist[2][d] = hist[3][d] = 0;
     int i = first;
-    for (; i + 1 < last; i += 2) {
-        hist[digit_of(keys[i], shift)]++;
-        hist_odd[digit_of(keys[i + 1], shift)]++;
+    for (; i + 3 < last; i += 4) {
+        hist[0][digit_of(keys[i], shift)]++;
+        hist[1][digit_of(keys[i + 1], shift)]++;
+        hist[2][digit_of(keys[i + 2], shift)]++;
+        hist[3][digit_of(keys[i + 3], shift)]++;
     }
-    if (i < last) hist[digit_of(keys[i], shift)]++;
-    for (int d = 0; d < RADIX; ++d) counts[d * num_chunks + gid] = hist[d] + hist_odd[d];
+    for (; i < last; ++i) hist[0][digit_of(keys[i], shift)]++;
+    for (int d = 0; d < RADIX; ++d)
+        counts[d * num_chunks + gid] = (hist[0][d] + hist[1][d]) + (hist[2][d] + hist[3][d]);
 }
 
 __kernel void scan_counts(__global uint *counts, const int num_chunks,
