@@ -47,13 +47,6 @@ def enqueue_varying_bits(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, n: i
     return mask, [ev]
 
 
-def varying_bits(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, n: int, key_bits: int
-                 ) -> tuple[int, list[cl.Event]]:
-    """Mask of the key bits that are not the same in every key (read back: it picks the passes)."""
-    mask, events = enqueue_varying_bits(ctx, mem, keys, n, key_bits)
-    return mask(), events
-
-
 def _defines(key_bits: int, radix_bits: int = 8) -> dict[str, int]:
     return {"KEY_BITS": key_bits, "RADIX_BITS": radix_bits, "LOCAL_BITS": LOCAL_BITS}
 
