@@ -48,10 +48,25 @@ __kernel void key_bits(__global const key_t *keys, const int n, const int per_it
     and_or[get_global_size(0) + gid] = o;
 }
 
+/* Speculative plan (lbvh/sort.py): the host may queue the passes for the
+ * varying bits it expects before it has read the real ones. The passes then
+ * do nothing unless the bits that vary (from key_bits' partial ANDs and ORs,
+ * num_partials of each) are exactly `expected`; num_partials = 0: no check. */
+inline int plan_holds(__global const key_t *and_or, int num_partials, key_t expected) {
+    key_t a = ~(key_t)0, o = 0;
+    for (int g = 0; g < num_partials; ++g) {
+        a &= and_or[g];
+        o |= and_or[num_partials + g];
+    }
+    return num_partials == 0 || (a ^ o) == expected;
+}
+
 __kernel void digit_histogram(__global const key_t *keys, const int n, const int per_item,
-                              const int shift, const int num_chunks, __global uint *counts) {
+                              const int shift, const int num_chunks, __global uint *counts,
+                              __global const key_t *and_or, const int num_partials,
+                              const key_t expected) {
     const int gid = get_global_id(0);
-    if (gid >= num_chunks) return;
+    if (gid >= num_chunks || !plan_holds(and_or, num_partials, expected)) return;
     const int first = chunk_first(gid, per_item, n);
     const int last = chunk_last(gid, per_item, n);
     /* Four histograms, one per key index mod 4: runs of equal digits
@@ -88,9 +103,10 @@ __kernel void scan_counts(__global uint *counts, const int num_chunks,
 __kernel void scatter(__global const key_t *keys_in, __global const uint *values_in,
                       __global key_t *keys_out, __global uint *values_out,
                       const int n, const int per_item, const int shift, const int num_chunks,
-                      __global const uint *counts, __global const uint *digit_totals) {
+                      __global const uint *counts, __global const uint *digit_totals,
+                      __global const key_t *and_or, const int num_partials, const key_t expected) {
     const int gid = get_global_id(0);
-    if (gid >= num_chunks) return;
+    if (gid >= num_chunks || !plan_holds(and_or, num_partials, expected)) return;
     const int first = chunk_first(gid, per_item, n);
     const int last = chunk_last(gid, per_item, n);
     uint offset[RADIX];
@@ -166,8 +182,11 @@ inline void bucket_pass(__global const key_t *src_keys, __global const uint *src
 __kernel void sort_buckets(__global key_t *keys_a, __global uint *values_a,
                            __global key_t *keys_b, __global uint *values_b,
                            const int n, const int per_item, __global const uint *digit_totals,
-                           __global const int *local_shifts, const int num_local) {
+                           __global const int *local_shifts, const int num_local,
+                           __global const key_t *and_or, const int num_partials,
+                           const key_t expected) {
     const int gid = get_global_id(0);
+    if (!plan_holds(and_or, num_partials, expected)) return;
     const uint lo = (uint)chunk_first(gid, per_item, n);
     const uint hi = (uint)chunk_last(gid, per_item, n);
     uint start = 0;

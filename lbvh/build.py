@@ -134,11 +134,12 @@ def _codes_and_mask(ctx: dev.Context, mem: dev.MemoryTracker, boxes: cl.Buffer, 
 
 def _sort_and_count(ctx: dev.Context, mem: dev.MemoryTracker, keys: cl.Buffer, values: cl.Buffer,
                     n: int, bits: int, mask, events: dict[str, list]):
-    """Sort the codes and count their duplicates, queued together; waits for the count
-    (``mask``: from :func:`_codes_and_mask`)."""
-    with dev.queued_together(ctx):
-        result = radix_sort(ctx, mem, keys, values, n, bits, mask=mask)
-        count, evs = enqueue_count_duplicates(ctx, mem, result.keys, n, bits)
+    """Sort the codes and count their duplicates; waits for the count (``mask``: from
+    :func:`_codes_and_mask`). Not one queued_together block: radix_sort queues
+    its passes behind its own, which opens before it waits for the mask, so
+    that on the CPU the speculated passes follow key_bits without a gap."""
+    result = radix_sort(ctx, mem, keys, values, n, bits, mask=mask)
+    count, evs = enqueue_count_duplicates(ctx, mem, result.keys, n, bits)
     events["sort"] += result.events
     events["morton"] += evs
     return result, count()
@@ -154,8 +155,9 @@ def build_on_device(ctx: dev.Context, vertices, faces, vbuf: cl.Buffer, fbuf: cl
     t0 = time.perf_counter()
 
     # The host waits for the device twice: for the varying key bits (which
-    # sort passes run) and for the duplicate count (30 or 63 bits). The
-    # commands between waits are queued together (dev.queued_together).
+    # sort passes run; on the CPU those it expects are queued before it
+    # waits) and for the duplicate count (30 or 63 bits). The commands
+    # between waits are queued together (dev.queued_together).
     with dev.queued_together(ctx):
         boxes, box, evs = triangle_bounds(ctx, mem, vbuf, fbuf, n)
         events["bounds"] += evs

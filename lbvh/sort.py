@@ -32,10 +32,20 @@ class SortResult:
     events: list
 
 
+@dataclass
+class VaryingBits:
+    """The queued key_bits kernel: ``result()`` waits for the read of its partial
+    ANDs and ORs and gives the mask of the bits that vary; ``partials`` holds
+    ``count`` ANDs then ``count`` ORs on the device (read by speculative passes)."""
+    result: Callable[[], int]
+    events: list
+    partials: cl.Buffer
+    count: int
+
+
 def enqueue_varying_bits(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, n: int,
-                         key_bits: int) -> tuple[Callable[[], int], list[cl.Event]]:
-    """Queue the key_bits kernel and the read of its partial ANDs and ORs; the
-    returned function waits for them and gives the mask of the bits that vary."""
+                         key_bits: int) -> VaryingBits:
+    """Queue the key_bits kernel and the read of its partial ANDs and ORs."""
     dtype = np.uint64 if key_bits == 64 else np.uint32
     launch = ctx.launch(n, gpu_per_item=-(-n // 4096))
     and_or = mem.alloc(2 * launch.global_size * np.dtype(dtype).itemsize, scratch=True)
@@ -44,7 +54,7 @@ def enqueue_varying_bits(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, n: i
         np.int32(launch.per_item), and_or)
     mask = read_later(ctx, mem, and_or, np.empty((2, launch.global_size), dtype), ev,
                       lambda p: int(np.bitwise_and.reduce(p[0])) ^ int(np.bitwise_or.reduce(p[1])))
-    return mask, [ev]
+    return VaryingBits(mask, [ev], and_or, launch.global_size)
 
 
 def _defines(key_bits: int, radix_bits: int = 8) -> dict[str, int]:
@@ -79,9 +89,16 @@ def digit_shifts(mask: int, key_bits: int, radix_bits: int) -> list[int]:
     return [s for s in range(0, key_bits, radix_bits) if (mask >> s) & digit]
 
 
+def expected_mask(key_bits: int) -> int:
+    """The varying bits that the sort speculates on: all bits of a 30-bit
+    (``uint32`` keys) or 63-bit (``uint64``) Morton code, as in any mesh of
+    more than a few triangles."""
+    return (1 << (63 if key_bits == 64 else 30)) - 1
+
+
 def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buffer, n: int,
                key_bits: int, free_inputs: bool = True, radix_bits: int | None = None,
-               mask: tuple[Callable[[], int], list[cl.Event]] | None = None) -> SortResult:
+               mask: VaryingBits | None = None) -> SortResult:
     """Sort pairs stably by key. Returns the buffers holding the result (inputs or new ones).
 
     ``keys`` and ``values`` must be writable: the passes use them as scratch.
@@ -89,45 +106,75 @@ def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buf
     sort no longer needs them. ``radix_bits`` overrides the device's digit width
     (:func:`radix_bits_for`). ``mask``: where the caller has queued the
     varying-bits read already, what :func:`enqueue_varying_bits` returned;
-    else the read is queued here. Either way the buffers and kernels are made
-    ready before the host waits, so that the passes are queued as soon as the
-    mask is known.
+    else the read is queued here.
+
+    On the CPU path (:func:`msd_plan`) the passes for :func:`expected_mask` are
+    queued before the host has read the real mask, and check it on the device:
+    the host does not wait between key_bits and the passes. Where the mask is
+    another, those passes do nothing and the plan for the real mask runs.
     """
-    pending, mask_events = mask or enqueue_varying_bits(ctx, mem, keys, n, key_bits)
+    varying = mask or enqueue_varying_bits(ctx, mem, keys, n, key_bits)
     radix_bits = radix_bits or radix_bits_for(ctx)
     defines = _defines(key_bits, radix_bits)
     kernels = [ctx.kernel(KERNEL_FILE, name, defines)
                for name in ("digit_histogram", "scan_counts", "scatter", "sort_buckets")]
     itemsize = 8 if key_bits == 64 else 4
+    key_type = np.uint64 if key_bits == 64 else np.uint32
     launch = ctx.launch(n, min_per_item=4096, gpu_per_item=max(1, -(-n // 65536)))
     counts = mem.alloc(4 * (1 << radix_bits) * launch.global_size, scratch=True)
     totals = mem.alloc(4 * (1 << radix_bits), scratch=True)
     pair = (keys, values), (mem.alloc(n * itemsize, scratch=True), mem.alloc(n * 4))
-    bits, events = pending(), list(mask_events)
-    shifts = digit_shifts(bits, key_bits, radix_bits)
-    if not shifts or n < 2:
-        mem.free(counts, totals, *pair[1])
-        return SortResult(keys, values, 0, events)
-    plan = msd_plan(bits, n, radix_bits, ctx.is_cpu)
-    # The bucket passes' shifts are copied when the buffer is made: no command.
-    local = None if plan is None else to_device(ctx, np.int32(plan[1]))
-    with queued_together(ctx):
-        src, dst = _enqueue_passes(ctx, kernels, radix_bits, launch, n,
-                                   shifts if plan is None else [plan[0]],
-                                   None if plan is None else len(plan[1]),
-                                   pair, counts, totals, local, events)
-    if local is not None:
-        local.release()   # the runtime keeps it until the kernel is done
+    events = list(varying.events)
+    guess = expected_mask(key_bits)
+    plan = msd_plan(guess, n, radix_bits, ctx.is_cpu)
+    if plan is not None:
+        guard = (varying.partials, np.int32(varying.count), key_type(guess))
+        speculated = _enqueue_plan(ctx, kernels, radix_bits, launch, n, plan, [], pair, counts,
+                                   totals, guard, events)
+    # result() gives the partials back to the pool while the speculated passes
+    # may still have to read them: safe on the in-order queue, which runs them
+    # before any later command that reuses the buffer.
+    bits = varying.result()
+    if plan is not None and bits == guess:
+        (src, dst), passes = speculated, 1 + len(plan[1])
+    else:
+        shifts = digit_shifts(bits, key_bits, radix_bits)
+        if not shifts or n < 2:
+            mem.free(counts, totals, *pair[1])
+            return SortResult(keys, values, 0, events)
+        plan = msd_plan(bits, n, radix_bits, ctx.is_cpu)
+        guard = (counts, np.int32(0), key_type(0))   # no check
+        src, dst = _enqueue_plan(ctx, kernels, radix_bits, launch, n, plan, shifts, pair, counts,
+                                 totals, guard, events)
+        passes = len(shifts) if plan is None else 1 + len(plan[1])
     mem.free(counts, totals)
     if free_inputs:
         mem.free(*dst)
-    passes = len(shifts) if plan is None else 1 + len(plan[1])
     return SortResult(src[0], src[1], passes, events)
+
+
+def _enqueue_plan(ctx: Context, kernels: list[cl.Kernel], radix_bits: int, launch, n: int,
+                  plan: tuple[int, list[int]] | None, shifts: list[int], pair, counts: cl.Buffer,
+                  totals: cl.Buffer, guard: tuple, events: list[cl.Event]):
+    """Queue the passes of ``plan`` (:func:`msd_plan`), or the LSD passes at
+    ``shifts`` where it is ``None``, behind one barrier; ``guard``: (partials,
+    count, expected mask) that the kernels check, count 0 for none."""
+    # The bucket passes' shifts are copied when the buffer is made: no command.
+    local = None if plan is None else to_device(ctx, np.int32(plan[1]))
+    with queued_together(ctx):
+        src_dst = _enqueue_passes(ctx, kernels, radix_bits, launch, n,
+                                  shifts if plan is None else [plan[0]],
+                                  None if plan is None else len(plan[1]),
+                                  pair, counts, totals, local, guard, events)
+    if local is not None:
+        local.release()   # the runtime keeps it until the kernel is done
+    return src_dst
 
 
 def _enqueue_passes(ctx: Context, kernels: list[cl.Kernel], radix_bits: int, launch, n: int,
                     shifts: list[int], num_local: int | None, pair, counts: cl.Buffer,
-                    totals: cl.Buffer, local: cl.Buffer | None, events: list[cl.Event]):
+                    totals: cl.Buffer, local: cl.Buffer | None, guard: tuple,
+                    events: list[cl.Event]):
     """Queue the digit passes at ``shifts`` and, with ``num_local``, the bucket
     passes of the CPU path; returns ((keys, values) holding the result, the other pair)."""
     chunks = launch.global_size
@@ -137,16 +184,17 @@ def _enqueue_passes(ctx: Context, kernels: list[cl.Kernel], radix_bits: int, lau
     src, dst = pair
     for shift in shifts:
         events.append(hist_k(ctx.queue, (chunks,), launch.local, src[0], np.int32(n),
-                             np.int32(launch.per_item), np.int32(shift), np.int32(chunks), counts))
+                             np.int32(launch.per_item), np.int32(shift), np.int32(chunks), counts,
+                             *guard))
         events.append(scan_k(ctx.queue, (radix,), scan_local, counts, np.int32(chunks), totals))
         events.append(scatter_k(ctx.queue, (chunks,), launch.local, src[0], src[1], dst[0], dst[1],
                                 np.int32(n), np.int32(launch.per_item), np.int32(shift),
-                                np.int32(chunks), counts, totals))
+                                np.int32(chunks), counts, totals, *guard))
         src, dst = dst, src
     if num_local is not None:
         events.append(buckets_k(
             ctx.queue, (chunks,), launch.local, src[0], src[1], dst[0], dst[1], np.int32(n),
-            np.int32(launch.per_item), totals, local, np.int32(num_local)))
+            np.int32(launch.per_item), totals, local, np.int32(num_local), *guard))
         if num_local % 2:
             src, dst = dst, src
     return src, dst

@@ -69,7 +69,10 @@ import lbvh.sort
 from lbvh import device as dev
 from lbvh.ray_order import ray_order
 lbvh.sort.MSD_MIN_KEYS = 1000
+# All 30 bits varying: the speculated passes run; 29 bits: they must stay idle.
 keys = rng.integers(0, 1 << 30, 5000).astype(np.uint32)
+keys[:2] = (0, (1 << 30) - 1)
+narrow = keys >> np.uint32(1)
 values = np.arange(5000, dtype=np.uint32)
 lo, hi = v.min(axis=0), v.max(axis=0)
 answers = []
@@ -77,13 +80,16 @@ for name in ("oclgrind", "pthread"):
     ctx = dev.get_context(name)
     mem = dev.MemoryTracker(ctx)
     rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR  # the sort works in place
-    res = lbvh.sort.radix_sort(ctx, mem, cl.Buffer(ctx.ctx, rw, hostbuf=keys),
-                               cl.Buffer(ctx.ctx, rw, hostbuf=values), 5000, 32, radix_bits=11)
+    orders = []
+    for k in (keys, narrow):
+        res = lbvh.sort.radix_sort(ctx, mem, cl.Buffer(ctx.ctx, rw, hostbuf=k),
+                                   cl.Buffer(ctx.ctx, rw, hostbuf=values), 5000, 32, radix_bits=11)
+        assert res.passes == 1 + 2
+        orders.append(dev.from_device(ctx, res.values, np.uint32, (5000,)))
     order, _ = ray_order(ctx, dev.to_device(ctx, o), dev.to_device(ctx, d), len(o), lo, hi)
-    answers.append((dev.from_device(ctx, res.values, np.uint32, (5000,)),
-                    dev.from_device(ctx, order, np.int32, (len(o),))))
-assert res.passes == 1 + 2
+    answers.append(orders + [dev.from_device(ctx, order, np.int32, (len(o),))])
 assert np.array_equal(answers[0][0], np.argsort(keys, kind="stable"))
+assert np.array_equal(answers[0][1], np.argsort(narrow, kind="stable"))
 assert all(np.array_equal(a, b) for a, b in zip(*answers))
 print("same on both: MSD sort and ray order")
 """

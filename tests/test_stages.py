@@ -18,7 +18,8 @@ from lbvh.emit import emit_hierarchy, emit_hierarchy_python
 from lbvh.layout import NODE_DTYPE, children_of, node_depths
 from lbvh.morton import KEY_DTYPE, count_duplicates, morton_codes, morton_codes_numpy
 from lbvh.refit import refit_boxes, refit_from_boxes, refit_numpy
-from lbvh.sort import LOCAL_BITS, MSD_MIN_KEYS, digit_shifts, msd_plan, radix_sort, radix_sort_numpy
+from lbvh.sort import (LOCAL_BITS, MSD_MIN_KEYS, digit_shifts, expected_mask, msd_plan,
+                       radix_sort, radix_sort_numpy)
 
 
 def upload(ctx, v, f):
@@ -141,6 +142,62 @@ def test_msd_buckets_of_very_different_sizes_sort_stably(ctx, key_bits):
     if ctx.is_cpu:
         plan = msd_plan(int(np.bitwise_or.reduce(keys)) ^ int(np.bitwise_and.reduce(keys)), n, 11, True)
         assert plan is not None and passes == 1 + len(plan[1])
+
+
+@pytest.mark.parametrize("key_bits", [32, 64])
+def test_speculative_passes_run_only_when_the_mask_is_the_expected_one(ctx, key_bits):
+    """The CPU path queues the passes for expected_mask() before reading the real
+    mask. Keys with every code bit varying use them (key_bits + 4 kernels); keys
+    with one bit fewer must leave them idle, the input untouched, and sort with
+    the real plan (4 more kernels). Duplicates make a disturbed input order show."""
+    if not ctx.is_cpu:
+        pytest.skip("the speculative plan is the CPU path's")
+    rng = np.random.default_rng(7)
+    n = MSD_MIN_KEYS + 1001
+    full = expected_mask(key_bits)
+    for mask, kernels in ((full, 5), (full >> 1, 9)):
+        keys = rng.integers(0, 1 << 12, n).astype(np.uint64) * np.uint64(mask // 4095)
+        keys[:2] = (0, mask)  # exactly `mask` varies
+        keys = (keys & np.uint64(mask)).astype(KEY_DTYPE[key_bits])
+        values = rng.permutation(n).astype(np.uint32)
+        mem = dev.MemoryTracker(ctx)
+        rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
+        res = radix_sort(ctx, mem, cl.Buffer(ctx.ctx, rw, hostbuf=keys),
+                         cl.Buffer(ctx.ctx, rw, hostbuf=values), n, key_bits)
+        assert len(res.events) == kernels, hex(mask)
+        exp_k, exp_v = radix_sort_numpy(keys, values)
+        assert np.array_equal(read(ctx, res.keys, keys.dtype, n), exp_k)
+        assert np.array_equal(read(ctx, res.values, np.uint32, n), exp_v)
+
+
+def test_sort_kernels_do_nothing_when_the_speculated_mask_is_wrong(ctx):
+    """The device-side guard itself: with partial ANDs and ORs whose varying bits
+    differ from `expected`, the histogram, scatter and bucket kernels write nothing."""
+    k = {name: ctx.kernel("sort.cl", name, {"KEY_BITS": 32, "RADIX_BITS": 11, "LOCAL_BITS": LOCAL_BITS})
+         for name in ("digit_histogram", "scatter", "sort_buckets")}
+    n = 5000
+    keys = np.arange(n, dtype=np.uint32)[::-1].copy()
+    rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
+    buf = lambda a: cl.Buffer(ctx.ctx, rw, hostbuf=a)
+    and_or = buf(np.array([0, 0xFF], np.uint32))    # one partial: bits 0..7 vary
+    sentinel = np.full(2048, 7, np.uint32)
+    for expected, written in ((0xFE, False), (0xFF, True)):
+        guard = (and_or, np.int32(1), np.uint32(expected))
+        counts, totals = buf(sentinel.copy()), buf(np.zeros(2048, np.uint32))
+        out_k, out_v = buf(np.zeros(n, np.uint32)), buf(np.zeros(n, np.uint32))
+        src_k, src_v = buf(keys), buf(np.arange(n, dtype=np.uint32))
+        k["digit_histogram"](ctx.queue, (1,), None, src_k, np.int32(n), np.int32(n), np.int32(0),
+                             np.int32(1), counts, *guard)
+        k["scatter"](ctx.queue, (1,), None, src_k, src_v, out_k, out_v, np.int32(n), np.int32(n),
+                     np.int32(0), np.int32(1), counts, totals, *guard)
+        one_bucket = buf(np.array([n] + [0] * 2047, np.uint32))
+        b_k, b_v = buf(np.zeros(n, np.uint32)), buf(np.zeros(n, np.uint32))
+        k["sort_buckets"](ctx.queue, (1,), None, src_k, src_v, b_k, b_v, np.int32(n), np.int32(n),
+                          one_bucket, buf(np.int32([0])), np.int32(1), *guard)
+        ctx.queue.finish()
+        assert (not np.array_equal(read(ctx, counts, np.uint32, 2048), sentinel)) == written
+        assert read(ctx, out_k, np.uint32, n).any() == written
+        assert read(ctx, b_k, np.uint32, n).any() == written
 
 
 def test_msd_plan():
