@@ -71,8 +71,8 @@ MSD_MIN_KEYS = 1 << 16
 def msd_plan(mask: int, n: int, radix_bits: int, is_cpu: bool) -> tuple[int, list[int]] | None:
     """CPU path for long keys: the shift of one MSD digit over the highest varying
     bits, and the shifts of the in-cache LSD passes below it (kernels/sort.cl,
-    sort_buckets); ``None`` where plain LSD passes are as good (a GPU, few keys,
-    or one digit covering every varying bit)."""
+    scatter_records and sort_buckets); ``None`` where plain LSD passes are as
+    good (a GPU, few keys, or one digit covering every varying bit)."""
     if not is_cpu or n < MSD_MIN_KEYS:
         return None
     top = max(mask.bit_length() - radix_bits, 0)
@@ -114,90 +114,107 @@ def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buf
     another, those passes do nothing and the plan for the real mask runs.
     """
     varying = mask or enqueue_varying_bits(ctx, mem, keys, n, key_bits)
-    radix_bits = radix_bits or radix_bits_for(ctx)
-    defines = _defines(key_bits, radix_bits)
-    kernels = [ctx.kernel(KERNEL_FILE, name, defines)
-               for name in ("digit_histogram", "scan_counts", "scatter", "sort_buckets")]
-    itemsize = 8 if key_bits == 64 else 4
-    key_type = np.uint64 if key_bits == 64 else np.uint32
-    launch = ctx.launch(n, min_per_item=4096, gpu_per_item=max(1, -(-n // 65536)))
-    counts = mem.alloc(4 * (1 << radix_bits) * launch.global_size, scratch=True)
-    totals = mem.alloc(4 * (1 << radix_bits), scratch=True)
-    pair = (keys, values), (mem.alloc(n * itemsize, scratch=True), mem.alloc(n * 4))
+    sort = _Sort(ctx, mem, keys, values, n, key_bits, radix_bits or radix_bits_for(ctx))
     events = list(varying.events)
     guess = expected_mask(key_bits)
-    plan = msd_plan(guess, n, radix_bits, ctx.is_cpu)
+    plan = msd_plan(guess, n, sort.radix_bits, ctx.is_cpu)
     if plan is not None:
-        guard = (varying.partials, np.int32(varying.count), key_type(guess))
-        speculated = _enqueue_plan(ctx, kernels, radix_bits, launch, n, plan, [], pair, counts,
-                                   totals, guard, events)
+        guard = (varying.partials, np.int32(varying.count), sort.key_type(guess))
+        speculated = sort.enqueue_msd(plan, guard, events)
     # result() gives the partials back to the pool while the speculated passes
     # may still have to read them: safe on the in-order queue, which runs them
     # before any later command that reuses the buffer.
     bits = varying.result()
     if plan is not None and bits == guess:
-        (src, dst), passes = speculated, 1 + len(plan[1])
-    else:
-        shifts = digit_shifts(bits, key_bits, radix_bits)
-        if not shifts or n < 2:
-            mem.free(counts, totals, *pair[1])
-            return SortResult(keys, values, 0, events)
-        plan = msd_plan(bits, n, radix_bits, ctx.is_cpu)
-        guard = (counts, np.int32(0), key_type(0))   # no check
-        src, dst = _enqueue_plan(ctx, kernels, radix_bits, launch, n, plan, shifts, pair, counts,
-                                 totals, guard, events)
-        passes = len(shifts) if plan is None else 1 + len(plan[1])
-    mem.free(counts, totals)
+        result = speculated
+    else:   # the speculated passes, if any, did nothing
+        shifts = digit_shifts(bits, key_bits, sort.radix_bits)
+        plan = msd_plan(bits, n, sort.radix_bits, ctx.is_cpu)
+        if plan is not None:
+            result = sort.enqueue_msd(plan, (sort.counts, np.int32(0), sort.key_type(0)), events)
+        elif shifts and n >= 2:
+            result = sort.enqueue_lsd(shifts, events)
+        else:
+            result = SortResult(keys, values, 0, events)
+    returned = {id(result.keys), id(result.values)}
+    mem.free(*[buf for buf in sort.own if id(buf) not in returned])
     if free_inputs:
-        mem.free(*dst)
-    return SortResult(src[0], src[1], passes, events)
+        mem.free(*[buf for buf in (keys, values) if id(buf) not in returned])
+    return result
 
 
-def _enqueue_plan(ctx: Context, kernels: list[cl.Kernel], radix_bits: int, launch, n: int,
-                  plan: tuple[int, list[int]] | None, shifts: list[int], pair, counts: cl.Buffer,
-                  totals: cl.Buffer, guard: tuple, events: list[cl.Event]):
-    """Queue the passes of ``plan`` (:func:`msd_plan`), or the LSD passes at
-    ``shifts`` where it is ``None``, behind one barrier; ``guard``: (partials,
-    count, expected mask) that the kernels check, count 0 for none."""
-    # The bucket passes' shifts are copied when the buffer is made: no command.
-    local = None if plan is None else to_device(ctx, np.int32(plan[1]))
-    with queued_together(ctx):
-        src_dst = _enqueue_passes(ctx, kernels, radix_bits, launch, n,
-                                  shifts if plan is None else [plan[0]],
-                                  None if plan is None else len(plan[1]),
-                                  pair, counts, totals, local, guard, events)
-    if local is not None:
+class _Sort:
+    """The buffers and kernels of one radix_sort call."""
+
+    def __init__(self, ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buffer,
+                 n: int, key_bits: int, radix_bits: int) -> None:
+        self.ctx, self.mem, self.keys, self.values, self.n = ctx, mem, keys, values, n
+        self.key_bits, self.radix_bits = key_bits, radix_bits
+        self.key_type = np.uint64 if key_bits == 64 else np.uint32
+        defines = _defines(key_bits, radix_bits)
+        self.kernels = {name: ctx.kernel(KERNEL_FILE, name, defines) for name in
+                        ("digit_histogram", "scan_counts", "scatter", "scatter_records",
+                         "sort_buckets")}
+        self.launch = ctx.launch(n, min_per_item=4096, gpu_per_item=max(1, -(-n // 65536)))
+        self.counts = mem.alloc(4 * (1 << radix_bits) * self.launch.global_size, scratch=True)
+        self.totals = mem.alloc(4 * (1 << radix_bits), scratch=True)
+        #: every buffer this sort allocated
+        self.own = [self.counts, self.totals]
+
+    def alloc(self, nbytes: int, scratch: bool = True) -> cl.Buffer:
+        buf = self.mem.alloc(nbytes, scratch=scratch)
+        self.own.append(buf)
+        return buf
+
+    def _count_and_scan(self, keys: cl.Buffer, shift: int, guard: tuple, events: list) -> None:
+        """Queue the digit histogram of each chunk and their scan."""
+        chunks, launch = self.launch.global_size, self.launch
+        events.append(self.kernels["digit_histogram"](
+            self.ctx.queue, (chunks,), launch.local, keys, np.int32(self.n),
+            np.int32(launch.per_item), np.int32(shift), np.int32(chunks), self.counts, *guard))
+        events.append(self.kernels["scan_counts"](
+            self.ctx.queue, (1 << self.radix_bits,), None if self.ctx.is_cpu else (64,),
+            self.counts, np.int32(chunks), self.totals))
+
+    def enqueue_msd(self, plan: tuple[int, list[int]], guard: tuple, events: list) -> SortResult:
+        """Queue the CPU path (kernels/sort.cl): one MSD pass into records, then
+        sort_buckets back into the input buffers; ``guard``: (partials, count,
+        expected mask) that the kernels check, count 0 for none."""
+        top, local_shifts = plan
+        chunks, launch, n = self.launch.global_size, self.launch, np.int32(self.n)
+        record_bytes = 8 if self.key_bits == 32 else 16
+        records = self.alloc(self.n * record_bytes)
+        # The bucket passes' shifts are copied when the buffer is made: no command.
+        local = to_device(self.ctx, np.int32(local_shifts))
+        with queued_together(self.ctx):
+            self._count_and_scan(self.keys, top, guard, events)
+            events.append(self.kernels["scatter_records"](
+                self.ctx.queue, (chunks,), launch.local, self.keys, self.values, records, n,
+                np.int32(launch.per_item), np.int32(top), np.int32(chunks), self.counts,
+                self.totals, *guard))
+            events.append(self.kernels["sort_buckets"](
+                self.ctx.queue, (chunks,), launch.local, records, self.keys, self.values, n,
+                np.int32(launch.per_item), self.totals, local, np.int32(len(local_shifts)),
+                *guard))
         local.release()   # the runtime keeps it until the kernel is done
-    return src_dst
+        return SortResult(self.keys, self.values, 1 + len(local_shifts), events)
 
-
-def _enqueue_passes(ctx: Context, kernels: list[cl.Kernel], radix_bits: int, launch, n: int,
-                    shifts: list[int], num_local: int | None, pair, counts: cl.Buffer,
-                    totals: cl.Buffer, local: cl.Buffer | None, guard: tuple,
-                    events: list[cl.Event]):
-    """Queue the digit passes at ``shifts`` and, with ``num_local``, the bucket
-    passes of the CPU path; returns ((keys, values) holding the result, the other pair)."""
-    chunks = launch.global_size
-    radix = 1 << radix_bits
-    hist_k, scan_k, scatter_k, buckets_k = kernels
-    scan_local = None if ctx.is_cpu else (64,)
-    src, dst = pair
-    for shift in shifts:
-        events.append(hist_k(ctx.queue, (chunks,), launch.local, src[0], np.int32(n),
-                             np.int32(launch.per_item), np.int32(shift), np.int32(chunks), counts,
-                             *guard))
-        events.append(scan_k(ctx.queue, (radix,), scan_local, counts, np.int32(chunks), totals))
-        events.append(scatter_k(ctx.queue, (chunks,), launch.local, src[0], src[1], dst[0], dst[1],
-                                np.int32(n), np.int32(launch.per_item), np.int32(shift),
-                                np.int32(chunks), counts, totals, *guard))
-        src, dst = dst, src
-    if num_local is not None:
-        events.append(buckets_k(
-            ctx.queue, (chunks,), launch.local, src[0], src[1], dst[0], dst[1], np.int32(n),
-            np.int32(launch.per_item), totals, local, np.int32(num_local), *guard))
-        if num_local % 2:
-            src, dst = dst, src
-    return src, dst
+    def enqueue_lsd(self, shifts: list[int], events: list) -> SortResult:
+        """Queue one LSD pass per shift, alternating between the inputs and a second pair."""
+        chunks, launch, n = self.launch.global_size, self.launch, np.int32(self.n)
+        itemsize = 8 if self.key_bits == 64 else 4
+        src = (self.keys, self.values)
+        dst = (self.alloc(self.n * itemsize), self.alloc(self.n * 4, scratch=False))
+        no_guard = (self.counts, np.int32(0), self.key_type(0))
+        with queued_together(self.ctx):
+            for shift in shifts:
+                self._count_and_scan(src[0], shift, no_guard, events)
+                events.append(self.kernels["scatter"](
+                    self.ctx.queue, (chunks,), launch.local, src[0], src[1], dst[0], dst[1], n,
+                    np.int32(launch.per_item), np.int32(shift), np.int32(chunks), self.counts,
+                    self.totals))
+                src, dst = dst, src
+        return SortResult(src[0], src[1], len(shifts), events)
 
 
 def radix_sort_numpy(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

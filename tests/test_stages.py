@@ -126,8 +126,10 @@ def test_radix_sort_skips_uniform_digits(ctx):
 
 @pytest.mark.parametrize("key_bits", [32, 64])
 def test_msd_buckets_of_very_different_sizes_sort_stably(ctx, key_bits):
-    """The CPU path's buckets: most keys share the top digit, a few spread over
-    the others, duplicates everywhere (stability shows through the values)."""
+    """The CPU path's buckets: most keys share the top digit (one bucket too large
+    for sort_buckets' private scratch: the passes alternate through the arrays),
+    a few spread over the others (through the scratch), duplicates everywhere
+    (stability shows through the values)."""
     rng = np.random.default_rng(key_bits)
     n = 3 * MSD_MIN_KEYS
     top = 29 if key_bits == 32 else 62
@@ -172,9 +174,10 @@ def test_speculative_passes_run_only_when_the_mask_is_the_expected_one(ctx, key_
 
 def test_sort_kernels_do_nothing_when_the_speculated_mask_is_wrong(ctx):
     """The device-side guard itself: with partial ANDs and ORs whose varying bits
-    differ from `expected`, the histogram, scatter and bucket kernels write nothing."""
+    differ from `expected`, the histogram, record scatter and bucket kernels
+    write nothing."""
     k = {name: ctx.kernel("sort.cl", name, {"KEY_BITS": 32, "RADIX_BITS": 11, "LOCAL_BITS": LOCAL_BITS})
-         for name in ("digit_histogram", "scatter", "sort_buckets")}
+         for name in ("digit_histogram", "scatter_records", "sort_buckets")}
     n = 5000
     keys = np.arange(n, dtype=np.uint32)[::-1].copy()
     rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
@@ -184,19 +187,20 @@ def test_sort_kernels_do_nothing_when_the_speculated_mask_is_wrong(ctx):
     for expected, written in ((0xFE, False), (0xFF, True)):
         guard = (and_or, np.int32(1), np.uint32(expected))
         counts, totals = buf(sentinel.copy()), buf(np.zeros(2048, np.uint32))
-        out_k, out_v = buf(np.zeros(n, np.uint32)), buf(np.zeros(n, np.uint32))
+        records = buf(np.zeros(n, np.uint64))
         src_k, src_v = buf(keys), buf(np.arange(n, dtype=np.uint32))
         k["digit_histogram"](ctx.queue, (1,), None, src_k, np.int32(n), np.int32(n), np.int32(0),
                              np.int32(1), counts, *guard)
-        k["scatter"](ctx.queue, (1,), None, src_k, src_v, out_k, out_v, np.int32(n), np.int32(n),
-                     np.int32(0), np.int32(1), counts, totals, *guard)
+        k["scatter_records"](ctx.queue, (1,), None, src_k, src_v, records, np.int32(n),
+                             np.int32(n), np.int32(0), np.int32(1), counts, totals, *guard)
         one_bucket = buf(np.array([n] + [0] * 2047, np.uint32))
+        in_bucket = buf(np.arange(n, dtype=np.uint64) << np.uint64(32))   # records: keys 0..n-1
         b_k, b_v = buf(np.zeros(n, np.uint32)), buf(np.zeros(n, np.uint32))
-        k["sort_buckets"](ctx.queue, (1,), None, src_k, src_v, b_k, b_v, np.int32(n), np.int32(n),
+        k["sort_buckets"](ctx.queue, (1,), None, in_bucket, b_k, b_v, np.int32(n), np.int32(n),
                           one_bucket, buf(np.int32([0])), np.int32(1), *guard)
         ctx.queue.finish()
         assert (not np.array_equal(read(ctx, counts, np.uint32, 2048), sentinel)) == written
-        assert read(ctx, out_k, np.uint32, n).any() == written
+        assert read(ctx, records, np.uint64, n).any() == written
         assert read(ctx, b_k, np.uint32, n).any() == written
 
 
