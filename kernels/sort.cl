@@ -19,6 +19,7 @@
  *
  * KEY_BITS (define): 32 or 64. RADIX_BITS (define): digit width, e.g. 8.
  * LOCAL_BITS (define): digit width of sort_buckets' in-cache passes.
+ * SCRATCH_BYTES (define): half of sort_buckets' private scratch.
  */
 #include "common.h"
 
@@ -199,8 +200,10 @@ __kernel void scatter_records(__global const key_t *keys_in, __global const uint
 #endif
 #define LOCAL_RADIX (1 << LOCAL_BITS)
 #define LOCAL_MASK (LOCAL_RADIX - 1)
-/* Private records of a bucket between two passes: 64 KiB, in the core's L2. */
-#define SCRATCH_RECORDS (65536 / (int)sizeof(record_t))
+/* Private records of a bucket between passes, two halves of SCRATCH_BYTES
+ * (define: 64 KiB on a CPU, in the core's L2; a few bytes where the path does
+ * not run, so that no compiler has to find room for it). */
+#define SCRATCH_RECORDS (SCRATCH_BYTES / (int)sizeof(record_t))
 
 /* Exclusive prefix sums of the first num8 * 8 bins, eight bins per step: with
  * buckets of a few hundred keys, a scan of 2^LOCAL_BITS bins one by one was a
@@ -256,8 +259,10 @@ inline void scan_bins(uint8 *bins, int num8) {
     values[start + (p)] = v
 
 /* The two passes of a bucket of m <= SCRATCH_RECORDS records (30-bit keys):
- * both digits counted in one read, the first pass into private scratch, the
- * second from there into the key and value arrays. */
+ * both digits counted in one read, both passes between the halves of private
+ * scratch, and a sequential copy into the key and value arrays: scattered
+ * writes to lines that are not in cache each wait for the line (bucket stage
+ * 10-20% faster than the second pass writing the arrays directly). */
 inline void two_passes_through_scratch(__global const record_t *records, __global key_t *keys,
                                        __global uint *values, uint m, int shift0, int shift1,
                                        record_t *scratch) {
@@ -275,12 +280,15 @@ inline void two_passes_through_scratch(__global const record_t *records, __globa
         const record_t r = records[i];
         scratch[offset0[(uint)(record_key(r) >> shift0) & LOCAL_MASK]++] = r;
     }
+    record_t *sorted = scratch + SCRATCH_RECORDS;
     for (uint i = 0; i < m; ++i) {
         const record_t r = scratch[i];
-        const key_t k = record_key(r);
-        const uint pos = offset1[(uint)(k >> shift1) & LOCAL_MASK]++;
-        keys[pos] = k;
-        values[pos] = record_value(r);
+        sorted[offset1[(uint)(record_key(r) >> shift1) & LOCAL_MASK]++] = r;
+    }
+    for (uint i = 0; i < m; ++i) {
+        const record_t r = sorted[i];
+        keys[i] = record_key(r);
+        values[i] = record_value(r);
     }
 }
 
@@ -299,7 +307,7 @@ __kernel void sort_buckets(__global record_t *records, __global key_t *keys,
     if (!plan_holds(and_or, num_partials, expected)) return;
     const uint lo = (uint)chunk_first(gid, per_item, n);
     const uint hi = (uint)chunk_last(gid, per_item, n);
-    record_t scratch[SCRATCH_RECORDS];
+    record_t scratch[2 * SCRATCH_RECORDS];
     uint start = 0;
     for (int d = 0; d < RADIX && start < hi; ++d) {
         const uint m = digit_totals[d];

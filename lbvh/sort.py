@@ -49,7 +49,7 @@ def enqueue_varying_bits(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, n: i
     dtype = np.uint64 if key_bits == 64 else np.uint32
     launch = ctx.launch(n, gpu_per_item=-(-n // 4096))
     and_or = mem.alloc(2 * launch.global_size * np.dtype(dtype).itemsize, scratch=True)
-    ev = ctx.kernel(KERNEL_FILE, "key_bits", _defines(key_bits))(
+    ev = ctx.kernel(KERNEL_FILE, "key_bits", _defines(key_bits, ctx.is_cpu))(
         ctx.queue, (launch.global_size,), launch.local, keys, np.int32(n),
         np.int32(launch.per_item), and_or)
     mask = read_later(ctx, mem, and_or, np.empty((2, launch.global_size), dtype), ev,
@@ -57,13 +57,17 @@ def enqueue_varying_bits(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, n: i
     return VaryingBits(mask, [ev], and_or, launch.global_size)
 
 
-def _defines(key_bits: int, radix_bits: int = 8) -> dict[str, int]:
-    return {"KEY_BITS": key_bits, "RADIX_BITS": radix_bits, "LOCAL_BITS": LOCAL_BITS}
+def _defines(key_bits: int, is_cpu: bool, radix_bits: int = 8) -> dict[str, int]:
+    return {"KEY_BITS": key_bits, "RADIX_BITS": radix_bits, "LOCAL_BITS": LOCAL_BITS,
+            "SCRATCH_BYTES": SCRATCH_BYTES if is_cpu else 16}
 
 
 #: Digit width of the in-cache passes of the CPU path: 10 bits measured best
 #: against 6 and 8 on 1M Morton keys (two passes below an 11-bit MSD digit).
 LOCAL_BITS = 10
+#: Half of sort_buckets' private scratch on a CPU: buckets of up to 8192
+#: 32-bit-key records sort there (the CPU path's two passes of 30-bit keys).
+SCRATCH_BYTES = 1 << 16
 #: Fewer keys than this are sorted by plain LSD passes.
 MSD_MIN_KEYS = 1 << 16
 
@@ -151,7 +155,7 @@ class _Sort:
         self.ctx, self.mem, self.keys, self.values, self.n = ctx, mem, keys, values, n
         self.key_bits, self.radix_bits = key_bits, radix_bits
         self.key_type = np.uint64 if key_bits == 64 else np.uint32
-        defines = _defines(key_bits, radix_bits)
+        defines = _defines(key_bits, ctx.is_cpu, radix_bits)
         self.kernels = {name: ctx.kernel(KERNEL_FILE, name, defines) for name in
                         ("digit_histogram", "scan_counts", "scatter", "scatter_records",
                          "sort_buckets")}

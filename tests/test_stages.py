@@ -18,8 +18,8 @@ from lbvh.emit import emit_hierarchy, emit_hierarchy_python
 from lbvh.layout import NODE_DTYPE, children_of, node_depths
 from lbvh.morton import KEY_DTYPE, count_duplicates, morton_codes, morton_codes_numpy
 from lbvh.refit import refit_boxes, refit_from_boxes, refit_numpy
-from lbvh.sort import (LOCAL_BITS, MSD_MIN_KEYS, digit_shifts, expected_mask, msd_plan,
-                       radix_sort, radix_sort_numpy)
+from lbvh.sort import (LOCAL_BITS, MSD_MIN_KEYS, SCRATCH_BYTES, digit_shifts, expected_mask,
+                       msd_plan, radix_sort, radix_sort_numpy)
 
 
 def upload(ctx, v, f):
@@ -176,7 +176,8 @@ def test_sort_kernels_do_nothing_when_the_speculated_mask_is_wrong(ctx):
     """The device-side guard itself: with partial ANDs and ORs whose varying bits
     differ from `expected`, the histogram, record scatter and bucket kernels
     write nothing."""
-    k = {name: ctx.kernel("sort.cl", name, {"KEY_BITS": 32, "RADIX_BITS": 11, "LOCAL_BITS": LOCAL_BITS})
+    k = {name: ctx.kernel("sort.cl", name, {"KEY_BITS": 32, "RADIX_BITS": 11, "LOCAL_BITS": LOCAL_BITS,
+                                           "SCRATCH_BYTES": SCRATCH_BYTES})
          for name in ("digit_histogram", "scatter_records", "sort_buckets")}
     n = 5000
     keys = np.arange(n, dtype=np.uint32)[::-1].copy()
