@@ -106,8 +106,8 @@ def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buf
     """Sort pairs stably by key. Returns the buffers holding the result (inputs or new ones).
 
     ``keys`` and ``values`` must be writable: the passes use them as scratch.
-    With ``free_inputs`` the buffers not returned are released as soon as the
-    sort no longer needs them. ``radix_bits`` overrides the device's digit width
+    The sort's own buffers that do not hold the result are always given back;
+    with ``free_inputs`` so are the inputs where they do not hold it. ``radix_bits`` overrides the device's digit width
     (:func:`radix_bits_for`). ``mask``: where the caller has queued the
     varying-bits read already, what :func:`enqueue_varying_bits` returned;
     else the read is queued here.
