@@ -22,6 +22,8 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 import pyopencl as cl
 
+from .pocl_target import fix_target_cpu
+
 ENV_DEVICE = "LBVH_DEVICE"
 
 # PoCL's platform name; the default device is the first device of this platform.
@@ -124,6 +126,8 @@ class Context:
     _lock: threading.RLock = field(init=False, default_factory=threading.RLock)
 
     def __post_init__(self) -> None:
+        # Before anything compiles: PoCL 3.0's CPU target (see pocl_target.py)
+        self.target_cpu = fix_target_cpu(self.device)
         self.ctx = cl.Context([self.device])
         self.queue = cl.CommandQueue(
             self.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
