@@ -12,9 +12,17 @@ substring of ``"<platform name> / <device name>"`` (``"pocl"``, ``"nvidia"``,
 """
 from __future__ import annotations
 
+import collections
 import contextlib
+import functools
 import os
+import re
+import shutil
+import struct
+import sys
 import threading
+import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
@@ -25,6 +33,8 @@ import pyopencl as cl
 from .pocl_target import fix_target_cpu
 
 ENV_DEVICE = "LBVH_DEVICE"
+# Set (to anything) to print every non-empty compiler log to stderr.
+ENV_BUILD_LOG = "LBVH_BUILD_LOG"
 
 # PoCL's platform name; the default device is the first device of this platform.
 _POCL_PLATFORM = "portable computing language"
@@ -121,6 +131,8 @@ class Context:
     _kernels: dict = field(init=False, default_factory=dict)
     _scratch: dict = field(init=False, default_factory=dict)
     _recycled: dict = field(init=False, default_factory=dict)
+    _logs: dict = field(init=False, default_factory=dict)
+    _dropped: collections.deque = field(init=False, default_factory=collections.deque)
     # Re-entrant: a tree's finalizer (give_back, run by the garbage collector at any
     # allocation) may fire while this thread is inside the pool.
     _lock: threading.RLock = field(init=False, default_factory=threading.RLock)
@@ -176,6 +188,7 @@ class Context:
     # trim_scratch() without arguments releases both.
     def take_scratch(self, nbytes: int) -> cl.Buffer | None:
         with self._lock:
+            self._adopt_dropped()
             for pool in (self._scratch, self._recycled):
                 free = pool.get(nbytes)
                 if free:
@@ -186,10 +199,20 @@ class Context:
         with self._lock:
             self._scratch.setdefault(nbytes, []).append(buf)
 
+    def dropped(self, buffers: Sequence[tuple[cl.Buffer, int]]) -> None:
+        """A tree's finalizer hands its buffers here. The garbage collector runs
+        it in whatever thread allocates, maybe one that holds another lock, so
+        it takes no lock: the next call that uses the pool adopts them."""
+        self._dropped.append(list(buffers))
+
+    def _adopt_dropped(self) -> None:
+        while self._dropped:
+            self.give_back(self._dropped.popleft())
+
     def give_back(self, buffers: Sequence[tuple[cl.Buffer, int]]) -> None:
         """Keep the buffers ``(buffer, bytes)`` of a tree that was dropped for the
-        next build of the same size (called by the tree's finalizer). Only the
-        last dropped tree's buffers are kept: the ones kept before are released."""
+        next build of the same size. Only the last dropped tree's buffers are
+        kept: the ones kept before are released."""
         with self._lock:
             for bufs in self._recycled.values():
                 for buf in bufs:
@@ -202,6 +225,7 @@ class Context:
         """Release pooled scratch beyond ``keep`` (bytes -> how many buffers); without
         it, all of the pool and the buffers kept from dropped trees."""
         with self._lock:
+            self._adopt_dropped()
             if keep is None:
                 self.give_back([])
             for nbytes, bufs in list(self._scratch.items()):
@@ -214,10 +238,23 @@ class Context:
     def scratch_bytes(self) -> int:
         """Device bytes held in the scratch pool between builds."""
         with self._lock:
+            self._adopt_dropped()
             return sum(n * len(b) for pool in (self._scratch, self._recycled)
                        for n, b in pool.items())
 
     # -- programs ------------------------------------------------------------
+    @property
+    def lock(self) -> threading.RLock:
+        """Held by every public call while it uses this context's queue.
+
+        All of a context's work goes through one in-order queue; a call holds
+        this lock from its first command to its last read, so commands of two
+        threads never interleave (a queued_together gate of one thread would
+        otherwise hold back a blocking read of another: the deadlock of issue
+        14). Re-entrant: public calls call each other.
+        """
+        return self._lock
+
     def program(self, filename: str, defines: dict[str, int | str] | None = None) -> cl.Program:
         """Compile ``kernels/<filename>`` with ``-D`` defines, once per context."""
         defines = dict(sorted((defines or {}).items()))
@@ -230,40 +267,244 @@ class Context:
             return prog
 
     def kernel(self, filename: str, name: str, defines: dict[str, int | str] | None = None) -> cl.Kernel:
-        """A kernel object of a cached program (kernel objects are cached too)."""
+        """A kernel object of a cached program (kernel objects are cached too).
+
+        A program whose binary came from a damaged compiler cache can lack
+        kernels (PoCL answers ``INVALID_KERNEL_NAME``); it is then compiled
+        afresh once, bypassing the cache, before the error is raised.
+        """
         key = (filename, name, tuple(sorted((defines or {}).items())))
-        knl = self._kernels.get(key)
-        if knl is None:
-            knl = getattr(self.program(filename, defines), name)
-            self._kernels[key] = knl
-        return knl
+        with self._lock:
+            knl = self._kernels.get(key)
+            if knl is None:
+                prog = self.program(filename, defines)
+                if name not in _kernel_names(prog):
+                    prog = self._recompile(filename, defines, f"kernel {name} missing")
+                    if name not in _kernel_names(prog):
+                        raise DeviceError(f"lbvh: kernels/{filename} compiled for {self.name} has "
+                                          f"no kernel {name} (it has: "
+                                          f"{', '.join(sorted(_kernel_names(prog))) or 'none'})")
+                knl = cl.Kernel(prog, name)
+                self._kernels[key] = knl
+            return knl
 
     def compiled_programs(self) -> int:
         """Number of programs compiled in this context so far (for tests of the cache)."""
         return len(self._programs)
 
-    def _compile(self, filename: str, defines: dict[str, int | str]) -> cl.Program:
-        root = kernels_dir()
-        source = (root / filename).read_text()
-        options = [f"-I{root}", "-cl-std=CL1.2"]
-        options += [f"-D{k}={v}" for k, v in defines.items()]
+    def build_log(self, filename: str, defines: dict[str, int | str] | None = None) -> str:
+        """The compiler's log of a program compiled in this context ('' when it said nothing)."""
+        return self._logs.get((filename, tuple(sorted((defines or {}).items()))), "")
+
+    def build_options(self, defines: dict[str, int | str]) -> list[str]:
+        """The options a kernel file is compiled with: no path (see :func:`kernel_source`)."""
+        options = ["-cl-std=CL1.2"] + [f"-D{k}={v}" for k, v in sorted(defines.items())]
         if self.device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT:
             # The Morton quantisation divides; correctly rounded division keeps it
             # bit-identical to the numpy twin on devices that offer it.
             options.append("-cl-fp32-correctly-rounded-divide-sqrt")
-        prog = cl.Program(self.ctx, source)
+        return options
+
+    def _recompile(self, filename: str, defines: dict[str, int | str] | None,
+                   why: str) -> cl.Program:
+        defines = dict(sorted((defines or {}).items()))
+        key = (filename, tuple(sorted(defines.items())))
+        with self._lock:
+            self._kernels = {k: v for k, v in self._kernels.items() if k[0] != filename
+                             or k[2] != key[1]}
+            prog = self._compile(filename, defines, salt=why)
+            self._programs[key] = prog
+            return prog
+
+    def _compile(self, filename: str, defines: dict[str, int | str], salt: str = "") -> cl.Program:
+        check_compiler_cache()
+        source = kernel_source(filename)
+        if salt:
+            # A different source is a different entry in every cache, so the
+            # damaged one is bypassed. PoCL keys its cache by the preprocessed
+            # source, so the difference must survive preprocessing: a typedef.
+            nonce = f"{os.getpid()}_{time.time_ns()}"
+            source += f"\n/* lbvh: compiled afresh: {salt} */ typedef int lbvh_afresh_{nonce};\n"
+        options = self.build_options(defines)
+        key = (filename, tuple(sorted(defines.items())))
+        raw = _raw_program(self.ctx, source)
         try:
-            return prog.build(options=options)
-        except cl.RuntimeError as exc:
-            log = _build_log(prog, self.device)
+            with warnings.catch_warnings():
+                # The log is kept (build_log) and checked by the tests; pyopencl's
+                # "Non-empty compiler output" warning would only repeat it.
+                warnings.simplefilter("ignore", cl.CompilerWarning)
+                raw.build(" ".join(options).encode(), [self.device])
+        except cl.Error as exc:
+            log = _build_log(raw, self.device)
             raise DeviceError(
                 f"lbvh: compiling kernels/{filename} for {self.name} failed "
                 f"(options: {' '.join(options)})\n{log or exc}") from exc
+        log = _build_log(raw, self.device).strip()
+        self._logs[key] = log
+        if log and os.environ.get(ENV_BUILD_LOG):
+            sys.stderr.write(f"lbvh: build log of kernels/{filename} {' '.join(options)}:\n{log}\n")
+        prog = cl.Program(raw)
+        if not salt and not _kernel_names(prog):
+            return self._compile(filename, defines, salt="no kernels in the binary")
+        return prog
 
 
-def _build_log(prog: cl.Program, dev: cl.Device) -> str:
+def _raw_program(ctx: cl.Context, source: str):
+    """An unbuilt program of exactly ``source``.
+
+    pyopencl's ``Program.build`` appends ``-I <its install path>`` to the
+    options, which makes every compiler cache key depend on where pyopencl is
+    installed (a second virtual environment recompiled everything); its
+    low-level program class builds with the options given and nothing more.
+    """
+    low = getattr(getattr(cl, "_cl", None), "_Program", None)
+    return low(ctx, source) if low is not None else cl.Program(ctx, source)
+
+
+def _kernel_names(prog: cl.Program) -> set[str]:
     try:
-        return prog.get_build_info(dev, cl.program_build_info.LOG)
+        names = prog.get_info(cl.program_info.KERNEL_NAMES)
+    except cl.Error:
+        return set()
+    return {n for n in names.split(";") if n}
+
+
+_INCLUDE = re.compile(r'^[ \t]*#[ \t]*include[ \t]*"([^"]+)"[ \t]*$', re.M)
+
+
+def kernel_source(filename: str) -> str:
+    """The text of ``kernels/<filename>`` with its ``#include "..."`` lines expanded.
+
+    Compiled without ``-I``, so that the source and options, hence every
+    compiler cache key, are the same wherever the package is installed.
+    """
+    root = kernels_dir()
+    seen: set[str] = set()
+
+    def expand(name: str) -> str:
+        if name in seen:   # headers are guarded; once is enough
+            return ""
+        seen.add(name)
+        text = (root / name).read_text()
+        return _INCLUDE.sub(lambda m: expand(m.group(1)), text)
+    return expand(filename)
+
+
+# -- the compiler's cache on disk --------------------------------------------
+# PoCL keeps compiled programs in $POCL_CACHE_DIR (default ~/.cache/pocl/kcache),
+# one folder per build: program.bc (LLVM bitcode) and one shared object per
+# kernel and work-group shape. A file cut short (a full disk, a process killed
+# while writing, a crash inside a kernel that left it half written) is loaded
+# as it is: an empty program.bc gives a program without kernels
+# (INVALID_KERNEL_NAME), a cut shared object aborts the process. Before the
+# first compile of a process every such file is checked and the folder of a
+# damaged one removed, so that PoCL compiles it again.
+_cache_checked = False
+_cache_lock = threading.Lock()
+_removed_cache_entries: list[str] = []
+
+
+def pocl_cache_dir() -> Path:
+    if os.environ.get("POCL_CACHE_DIR"):
+        return Path(os.environ["POCL_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "pocl" / "kcache"
+
+
+def _file_whole(path: Path) -> bool:
+    """Whether a cached bitcode or ELF shared object is complete, from its headers."""
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(64)
+    except OSError:
+        return False
+    if path.suffix == ".bc":
+        try:
+            return _bitcode_whole(path.read_bytes())
+        except OSError:
+            return False
+    if head[:4] != b"\x7fELF" or len(head) < 64 or head[4] != 2:   # 64-bit ELF
+        return False
+    order = "<" if head[5] == 1 else ">"
+    shoff, = struct.unpack_from(order + "Q", head, 0x28)
+    shentsize, shnum = struct.unpack_from(order + "HH", head, 0x3A)
+    return shoff + shentsize * shnum <= size
+
+
+def _bitcode_whole(data: bytes) -> bool:
+    """Whether LLVM bitcode holds its module and string table blocks, none cut short.
+
+    The top level of a bitstream (LLVM's "Bitstream Format") is a sequence of
+    blocks, each opened by ENTER_SUBBLOCK (abbreviation id 1 in 2 bits), its
+    block id (VBR8), abbreviation width (VBR4), alignment to 32 bits and its
+    length in 32-bit words; a file cut anywhere leaves its last block short.
+    """
+    if data[:4] == b"\xde\xc0\x17\x0b" and len(data) >= 20:   # wrapper: offset, size
+        offset, size = struct.unpack_from("<II", data, 8)
+        if offset + size > len(data):
+            return False
+        data = data[offset:offset + size]
+    if data[:4] != b"BC\xc0\xde":
+        return False
+    bits = int.from_bytes(data[4:], "little")
+    total, pos, blocks = 8 * (len(data) - 4), 0, set()
+
+    def read(width: int) -> int:
+        nonlocal pos
+        value = (bits >> pos) & ((1 << width) - 1)
+        pos += width
+        return value
+
+    def vbr(width: int) -> int:
+        value, shift = 0, 0
+        while True:
+            piece = read(width)
+            value |= (piece & ((1 << (width - 1)) - 1)) << shift
+            shift += width - 1
+            if not piece >> (width - 1) or pos > total:
+                return value
+
+    while total - pos >= 32:
+        if read(2) != 1:                       # only blocks at the top level
+            return (bits >> (pos - 2)) == 0 and bool(blocks)   # zero padding at the end
+        blocks.add(vbr(8))
+        vbr(4)
+        pos = -(-pos // 32) * 32
+        if total - pos < 32:
+            return False
+        words = read(32)
+        pos += 32 * words
+        if pos > total:
+            return False
+    return {8, 23} <= blocks                   # MODULE_BLOCK and STRTAB_BLOCK
+
+
+def check_compiler_cache(root: Path | None = None) -> list[str]:
+    """Remove damaged entries of PoCL's kernel cache (once per process); returns them."""
+    global _cache_checked
+    with _cache_lock:
+        if _cache_checked and root is None:
+            return []
+        _cache_checked = _cache_checked or root is None
+        root = pocl_cache_dir() if root is None else root
+        removed = []
+        if not root.is_dir():
+            return removed
+        for entry in root.glob("*/*"):
+            if not entry.is_dir():
+                continue
+            files = list(entry.glob("program.bc")) + list(entry.glob("*/*/*.so"))
+            if any(not _file_whole(f) for f in files):
+                shutil.rmtree(entry, ignore_errors=True)
+                removed.append(str(entry))
+        _removed_cache_entries.extend(removed)
+        return removed
+
+
+def _build_log(prog, dev: cl.Device) -> str:
+    try:
+        return prog.get_build_info(dev, cl.program_build_info.LOG) or ""
     except cl.Error:
         return ""
 
@@ -282,8 +523,21 @@ def get_context(device: str | cl.Device | Context | None = None) -> Context:
         ctx = _contexts.get(key)
         if ctx is None:
             ctx = Context(dev)
+            # Before the context is handed out: its kernels give the right
+            # answers on this device (lbvh/selftest.py), or DeviceError.
+            from .selftest import require
+            require(ctx)
             _contexts[key] = ctx
         return ctx
+
+
+def serialised(func: Callable) -> Callable:
+    """Run ``func(tree, ...)`` holding ``tree.ctx.lock`` (see :attr:`Context.lock`)."""
+    @functools.wraps(func)
+    def locked(tree, *args, **kwargs):
+        with tree.ctx.lock:
+            return func(tree, *args, **kwargs)
+    return locked
 
 
 def event_seconds(events: Sequence[cl.Event]) -> float:
