@@ -90,6 +90,13 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh",
         _check_collapse_options(**options)
     ctx = dev.get_context(device)
     _check_fits(ctx, len(f))
+    with ctx.lock:   # one call's commands at a time on the context's queue
+        return _build_lbvh(ctx, v, f, wanted, auto_duplicate_fraction, rounds, collapse, options)
+
+
+def _build_lbvh(ctx: dev.Context, v: np.ndarray, f: np.ndarray, wanted: int | None,
+                auto_duplicate_fraction: float, rounds: int, collapse: bool,
+                options: dict) -> BVH:
     t0 = time.perf_counter()
     vbuf, fbuf = dev.to_device(ctx, v), dev.to_device(ctx, f)
     ctx.queue.finish()

@@ -103,13 +103,14 @@ class BVH:
         ctx = dev.get_context(device)
         leaf_nodes = np.flatnonzero(is_leaf(nodes)).astype(np.int32)
         rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
-        bvh = cls(ctx, vertices, faces, dev.to_device(ctx, vertices), dev.to_device(ctx, faces),
-                  cl.Buffer(ctx.ctx, rw, hostbuf=nodes), cl.Buffer(ctx.ctx, rw, hostbuf=parent),
-                  cl.Buffer(ctx.ctx, rw, hostbuf=prim_order), len(nodes), root, builder, report,
-                  leaf_nodes=leaf_nodes)
-        return bvh
+        with ctx.lock:
+            return cls(ctx, vertices, faces, dev.to_device(ctx, vertices), dev.to_device(ctx, faces),
+                       cl.Buffer(ctx.ctx, rw, hostbuf=nodes), cl.Buffer(ctx.ctx, rw, hostbuf=parent),
+                       cl.Buffer(ctx.ctx, rw, hostbuf=prim_order), len(nodes), root, builder, report,
+                       leaf_nodes=leaf_nodes)
 
     # -- numpy views ----------------------------------------------------------
+    @dev.serialised
     def _fetch(self, name: str) -> np.ndarray:
         arr = self._host.get(name)
         if arr is None:
@@ -161,6 +162,7 @@ class BVH:
         return rep
 
     # -- animation ------------------------------------------------------------
+    @dev.serialised
     def refit(self, vertices: Any) -> "BVH":
         """Recompute every box on the device for moved vertices (same faces, same topology).
 
@@ -227,7 +229,7 @@ class BVH:
 
 def _give_back(ctx: dev.Context, buffers: list[tuple[cl.Buffer, int]]) -> None:
     if buffers:
-        ctx.give_back(buffers)
+        ctx.dropped(buffers)
 
 
 def load(path: str | os.PathLike, device: Any = None) -> BVH:

@@ -78,6 +78,7 @@ def collapse_decisions(bvh: BVH, *, c_node: float = C_NODE, c_tri: float = C_TRI
             "becomes_leaf": flags != 0}
 
 
+@dev.serialised
 def collapse_leaves(bvh: BVH, *, c_node: float = C_NODE, c_tri: float = C_TRI,
                     max_leaf_size: int = MAX_LEAF_SIZE, **unknown: Any) -> BVH:
     """A new BVH whose leaves are the subtrees of ``bvh`` that the SAH prefers as leaves.

@@ -490,6 +490,7 @@ def _trace(bvh: Any, origins: Any, directions: Any, tmin: Any, tmax: Any, any_hi
                 tris_tested=None if count is None else count[:, 1].copy())
 
 
+@dev.serialised
 def intersect(bvh: Any, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
               triangle_test: str = "watertight", counters: bool = False,
               batch_size: int = 1 << 20, stack_size: int | None = None) -> Hits:
@@ -515,6 +516,7 @@ def intersect(bvh: Any, origins: Any, directions: Any, tmin: Any = 0.0, tmax: An
                   batch_size, stack_size)
 
 
+@dev.serialised
 def occluded(bvh: Any, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
              triangle_test: str = "watertight", counters: bool = False,
              batch_size: int = 1 << 20, stack_size: int | None = None,
