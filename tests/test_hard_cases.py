@@ -33,6 +33,8 @@ import pytest
 
 import lbvh
 from lbvh import check, hard_cases
+from lbvh.device import get_context
+from lbvh.layout import NODE_DTYPE
 from lbvh.oracle import brute_force
 
 BUILDERS = list(check.BUILDERS)
@@ -200,6 +202,14 @@ def test_over_2_24_triangles(builder, request):
         pytest.skip("slow: set LBVH_SLOW=1 or pass -m slow (about a minute and 7 GB each)")
     c = case(LARGE)
     assert len(c.faces) > 2 ** 24 and (c.expected_prim > 2 ** 24).sum() >= 32
+    # The node buffer of more than 2^24 triangles passes 1 GiB, the largest
+    # allocation of some devices (PoCL's CPU device on some machines): read the
+    # limit from the device. Meshes beyond one allocation are issue 18's.
+    device = get_context().device
+    need, limit = NODE_DTYPE.itemsize * (2 * len(c.faces) - 1), int(device.max_mem_alloc_size)
+    if need > limit:
+        pytest.skip(f"the node buffer of {len(c.faces):,} triangles is {need:,} bytes, more than "
+                    f"this device's largest allocation ({limit:,} bytes)")
     bvh_out: list = []
     out = check.run_case(c, builder, check.Judge(c, check.reference(c)), bvh_out=bvh_out)
     assert out.error is None and out.validate_error is None, out.failures()
