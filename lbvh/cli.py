@@ -138,12 +138,33 @@ def cmd_render(args: argparse.Namespace) -> int:
 def cmd_devices(args: argparse.Namespace) -> int:
     from .device import _all_devices
 
+    from . import pocl_target, selftest
+    from .device import DeviceError, get_context
+
     default = find_device(args.device)
+    failed = False
     for label, dev in _all_devices():
         mark = "*" if dev.int_ptr == default.int_ptr else " "
+        status = "not run (--no-self-test)"
+        if not args.no_self_test and not selftest.enabled():
+            status = f"skipped ({selftest.ENV_SELF_TEST}=0)"
+        elif not args.no_self_test:
+            key = selftest.device_key(dev)
+            try:
+                get_context(dev)
+            except DeviceError as exc:
+                if key not in selftest.results():
+                    status = f"unusable: {exc}"
+            if key in selftest.results():
+                status = selftest.results()[key].summary()
+            failed = failed or not status.startswith("passed")
         print(f"{mark} {label}  ({dev.version.strip()})")
+        target = pocl_target.target_cpu(dev)
+        if target and target[0] != target[1]:
+            print(f"    compiled for: {target[1]} (PoCL's LLVM names this CPU {target[0]!r})")
+        print(f"    self-test: {status}")
     print(f"default: {describe(default)}")
-    return 0
+    return 1 if failed else 0
 
 
 def cmd_check(args: argparse.Namespace) -> int:
@@ -181,7 +202,9 @@ def make_parser() -> argparse.ArgumentParser:
     from .check import add_arguments as add_check_arguments
     add_check_arguments(p)
     p.set_defaults(func=cmd_check)
-    p = sub.add_parser("devices", help="list the OpenCL devices")
+    p = sub.add_parser("devices", help="list the OpenCL devices and their self-test results")
+    p.add_argument("--no-self-test", action="store_true",
+                   help="list only: do not run each device's known-answer test")
     p.add_argument("--device", default=None)
     p.set_defaults(func=cmd_devices)
     return parser

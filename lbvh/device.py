@@ -148,6 +148,8 @@ class Context:
         self.compiler_is_clang = self.device.platform.name.strip().lower() == _POCL_PLATFORM
         self.compute_units = max(1, int(self.device.max_compute_units))
         self.name = describe(self.device)
+        if self.target_cpu and self.target_cpu[0] != self.target_cpu[1]:
+            self.name += f", kernels compiled for {self.target_cpu[1]}"
 
     # -- launch geometry ---------------------------------------------------
     def work_items(self) -> int:

@@ -12,15 +12,23 @@ build's closest hits against the float64 oracle. A device that differs raises
 :class:`lbvh.device.DeviceError` naming the stage and the first differing
 value, instead of a silently wrong tree.
 
-The answer is kept per device and driver version for the life of the process
-(``results()``); ``LBVH_SELF_TEST=0`` skips the test.
+The check runs in a child process (a kernel that crashes fails the test, not
+the caller) the first time a device, driver version, compile target and
+kernel source are seen; the answer is kept in ``~/.cache/lbvh/selftest`` and
+for the life of the process (``results()``). ``LBVH_SELF_TEST=0`` skips it.
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import os
+import signal
+import subprocess
+import sys
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -38,11 +46,11 @@ class SelfTest:
     passed: bool
     seconds: float
     failure: str = ""
+    kept: bool = False   # read from the cache of an earlier process
 
     def summary(self) -> str:
-        if self.passed:
-            return f"passed ({self.seconds * 1e3:.0f} ms)"
-        return f"FAILED: {self.failure}"
+        when = "in an earlier run" if self.kept else f"in {self.seconds * 1e3:.0f} ms"
+        return f"passed ({when})" if self.passed else f"FAILED ({when}): {self.failure}"
 
 
 _results: dict[tuple[str, str], SelfTest] = {}
@@ -93,8 +101,12 @@ def _first_difference(name: str, got: np.ndarray, want: np.ndarray) -> str | Non
             f"expected {want[i].tolist()}")
 
 
-def _check(ctx: dev.Context) -> list[str]:
-    """Run every stage on the tiny mesh; the list of differences (empty: passed)."""
+def _check(ctx: dev.Context, stage=lambda name: None) -> list[str]:
+    """Run every stage on the tiny mesh; the list of differences (empty: passed).
+
+    ``stage(name)`` is called before each kernel runs (the child process of
+    :func:`self_test` prints it, so a crash names the kernel it crashed in).
+    """
     from .bounds import triangle_bounds, triangle_boxes_numpy
     from .build import build_on_device
     from .emit import emit_hierarchy, emit_hierarchy_python
@@ -116,23 +128,28 @@ def _check(ctx: dev.Context) -> list[str]:
 
     mem = dev.MemoryTracker(ctx)
     vb, fb = dev.to_device(ctx, v), dev.to_device(ctx, f)
+    stage("bounds.cl triangle_bounds")
     boxes, box, _ = triangle_bounds(ctx, mem, vb, fb, n)
     lo, hi = triangle_boxes_numpy(v, f)
     got_boxes = dev.from_device(ctx, boxes, np.float32, (n, 2, 4))[:, :, :3]
     compare("bounds.cl triangle_bounds", got_boxes.reshape(n, 6), np.hstack([lo, hi]))
     centres, bounds = triangle_centres_numpy(v, f), centroid_bounds_numpy(v, f)
     for key_bits, dtype in ((32, np.uint32), (64, np.uint64)):
+        stage(f"morton.cl morton_codes ({key_bits}-bit keys)")
         keys, values, _ = morton_codes(ctx, mem, boxes, box, n, key_bits)
         got_keys = dev.from_device(ctx, keys, dtype, (n,))
         want_keys = morton_codes_numpy(centres, bounds, key_bits)
         compare(f"morton.cl morton_codes ({key_bits}-bit keys)", got_keys, want_keys)
+        stage(f"sort.cl radix_sort ({key_bits}-bit keys)")
         res = radix_sort(ctx, mem, keys, values, n, key_bits)
         sorted_keys = dev.from_device(ctx, res.keys, dtype, (n,))
         sorted_values = dev.from_device(ctx, res.values, np.int32, (n,))
         want_sorted, want_values = radix_sort_numpy(want_keys, np.arange(n, dtype=np.int32))
         compare(f"sort.cl radix_sort ({key_bits}-bit keys)", sorted_keys, want_sorted)
         compare(f"sort.cl radix_sort values ({key_bits}-bit keys)", sorted_values, want_values)
+        stage(f"emit.cl emit_hierarchy ({key_bits}-bit keys)")
         nodes, parent, _ = emit_hierarchy(ctx, mem, dev.to_device(ctx, want_sorted), n, key_bits)
+        ctx.queue.finish()
         got_nodes = dev.from_device(ctx, nodes, NODE_DTYPE, (2 * n - 1,))
         want_children, want_parent = emit_hierarchy_python(want_sorted, key_bits)
         compare(f"emit.cl emit_hierarchy children ({key_bits}-bit keys)",
@@ -144,6 +161,7 @@ def _check(ctx: dev.Context) -> list[str]:
     if problems:
         return problems
     # A whole build: the refit's boxes against the numpy refit, hits against the oracle
+    stage("a whole build (bounds, morton, sort, emit, refit)")
     tree = build_on_device(ctx, v, f, vb, fb, None)
     want_lo, want_hi = refit_numpy(tree.nodes, tree.parent, tree.root, tree.prim_order, v, f)
     compare("refit.cl refit (boxes of the build)",
@@ -153,37 +171,129 @@ def _check(ctx: dev.Context) -> list[str]:
     origins = (targets + rng.normal(size=targets.shape).astype(np.float32) * 4).astype(np.float32)
     directions = (targets - origins).astype(np.float32)
     from .traverse import intersect
+    stage("wide.cl and traverse.cl (closest hits)")
     hits = intersect(tree, origins, directions)
     oracle = brute_force(v, f, origins, directions)
     compare("traverse.cl traverse (closest hit, triangle)", hits.prim, oracle.prim)
     return problems
 
 
+def _cache_file(ctx: dev.Context) -> Path:
+    """Where the answer for this device, driver, compile target and kernel source is kept."""
+    from . import __version__
+    from .pocl_target import target_cpu
+    h = hashlib.sha1()
+    for name in sorted(p.name for p in dev.kernels_dir().iterdir() if p.suffix in (".cl", ".h")):
+        h.update(name.encode() + (dev.kernels_dir() / name).read_bytes())
+    h.update(repr((device_key(ctx.device), target_cpu(ctx.device), __version__)).encode())
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "lbvh" / "selftest" / f"{h.hexdigest()}.json"
+
+
+def _device_label(device: Any) -> str:
+    """A name :func:`lbvh.device.find_device` resolves to exactly this device."""
+    matches = [d for label, d in dev._all_devices() if label == device_key(device)[0]]
+    index = next((k for k, d in enumerate(matches) if d.int_ptr == device.int_ptr), 0)
+    return f"{device_key(device)[0]}#{index}"
+
+
+def _run_child(ctx: dev.Context) -> SelfTest:
+    """The check in a child process: a kernel that crashes fails the test, not the caller."""
+    key = device_key(ctx.device)
+    env = dict(os.environ, **{ENV_SELF_TEST: "child"})
+    start = time.perf_counter()
+    try:
+        proc = subprocess.run([sys.executable, "-m", "lbvh.selftest", _device_label(ctx.device)],
+                              capture_output=True, text=True, timeout=300, env=env)
+    except subprocess.TimeoutExpired:
+        return SelfTest(key[0], key[1], False, time.perf_counter() - start,
+                        "the self-test did not finish in 300 s")
+    seconds = time.perf_counter() - start
+    lines = proc.stdout.splitlines()
+    stages = [line[len("stage: "):] for line in lines if line.startswith("stage: ")]
+    verdict = next((json.loads(line[len("result: "):]) for line in lines
+                    if line.startswith("result: ")), None)
+    if verdict is not None:
+        return SelfTest(key[0], key[1], verdict["passed"], seconds, verdict["failure"])
+    if proc.returncode < 0:
+        how = f"signal {signal.Signals(-proc.returncode).name}"
+    else:
+        how = f"exit status {proc.returncode}"
+    where = f" in {stages[-1]}" if stages else ""
+    tail = proc.stderr.strip().splitlines()[-3:]
+    return SelfTest(key[0], key[1], False, seconds,
+                    f"the self-test process died ({how}){where}" + (f": {' | '.join(tail)}" if tail else ""))
+
+
 def self_test(ctx: dev.Context) -> SelfTest:
-    """The known-answer test of ``ctx``'s device (run once per device and driver)."""
+    """The known-answer test of ``ctx``'s device, run once per device, driver and kernel source.
+
+    It runs in a child process, so that a miscompiled kernel that crashes
+    fails the test instead of the caller; the answer is kept in
+    ``~/.cache/lbvh/selftest`` for the next processes.
+    """
     key = device_key(ctx.device)
     with _lock:
         done = _results.get(key)
         if done is not None:
             return done
-        start = time.perf_counter()
-        with ctx.lock:
+        path = _cache_file(ctx)
+        result = None
+        try:
+            kept = json.loads(path.read_text())
+            result = SelfTest(key[0], key[1], bool(kept["passed"]), float(kept["seconds"]),
+                              str(kept["failure"]), kept=True)
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+        if result is None:
+            result = _run_child(ctx)
             try:
-                problems = _check(ctx)
-            except dev.DeviceError as exc:
-                problems = [str(exc)]
-        result = SelfTest(key[0], key[1], not problems, time.perf_counter() - start,
-                          "; ".join(problems))
+                path.parent.mkdir(parents=True, exist_ok=True)
+                tmp = path.with_suffix(f".{os.getpid()}.tmp")
+                tmp.write_text(json.dumps({"passed": result.passed, "failure": result.failure,
+                                           "device": key[0], "driver": key[1],
+                                           "seconds": result.seconds}))
+                os.replace(tmp, path)
+            except OSError:
+                pass   # a read-only home: the test runs again next time
         _results[key] = result
         return result
 
 
+def run_here(ctx: dev.Context) -> SelfTest:
+    """The check in this process (what the child runs), printing each stage first."""
+    key = device_key(ctx.device)
+    start = time.perf_counter()
+
+    def stage(name: str) -> None:
+        print(f"stage: {name}", flush=True)
+    with ctx.lock:
+        try:
+            problems = _check(ctx, stage)
+        except dev.DeviceError as exc:
+            problems = [str(exc)]
+    return SelfTest(key[0], key[1], not problems, time.perf_counter() - start, "; ".join(problems))
+
+
 def require(ctx: dev.Context) -> None:
     """Run the self-test (once) unless disabled; raise ``DeviceError`` if the device fails it."""
-    if not enabled():
+    if not enabled() or os.environ.get(ENV_SELF_TEST) == "child":
         return
     result = self_test(ctx)
     if not result.passed:
         raise dev.DeviceError(
-            f"lbvh: {ctx.name} fails the self-test (its kernels give wrong answers, so no tree "
-            f"built on it can be trusted): {result.failure}. Set {ENV_SELF_TEST}=0 to use it anyway.")
+            f"lbvh: {ctx.name} fails the self-test, so no tree built on it can be trusted: "
+            f"{result.failure}. Set {ENV_SELF_TEST}=0 to use it anyway.")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m lbvh.selftest DEVICE``: the child process of :func:`self_test`."""
+    args = sys.argv[1:] if argv is None else argv
+    ctx = dev.get_context(args[0] if args else None)
+    result = run_here(ctx)
+    print("result: " + json.dumps({"passed": result.passed, "failure": result.failure}), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -119,6 +119,12 @@ def test_info_reads_a_scene_description(capsys):
 def test_devices_lists_the_default(capsys):
     code, out, err = _run(capsys, "devices")
     assert code == 0 and "default:" in out
+    assert "self-test: passed" in out
+
+
+def test_devices_without_self_test(capsys):
+    code, out, err = _run(capsys, "devices", "--no-self-test")
+    assert code == 0 and "self-test: not run" in out
 
 
 def test_the_installed_command_runs_in_a_subprocess(tmp_path):
