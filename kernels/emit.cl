@@ -47,56 +47,133 @@
 
 #define LANES 8
 
+/* No value wider than 32 bytes crosses a function boundary, by construction.
+ * PoCL 3.0 compiles with -Dinline= (every helper here is an ordinary function
+ * that may stay out of line), and on a CPU newer than its LLVM (AMD Zen 4) it
+ * compiles for a CPU without AVX-512 while its built-in library is built with
+ * it: built-ins are then called out of line, and the two sides pass a 64-byte
+ * vector differently (two ymm registers against one zmm), so the lanes arrive
+ * as garbage (clang: "AVX vector argument of type 'ulong8' without 'avx512f'
+ * enabled changes the ABI"). Lanes of 32-bit values go as int8 and uint8 (32
+ * bytes); lanes of 64-bit values are kept as two ulong4 halves (lanes 0-3 in
+ * .lo, 4-7 in .hi) and converted half by half; the prefixes (64 or 96 bytes)
+ * go through pointers to private memory. On the CPU device this is as fast as
+ * the ulong8 form was, and faster than ulong8 inside the functions with
+ * 512-bit vectors asked of clang (morton.cl's WIDE_VECTORS: 15% slower here). */
+
 /* Lane masks are 0 or -1. select() and any() are written out because PoCL 3
  * calls both out of line. */
 inline int8 blend_int(int8 a, int8 b, int8 m) { return (a & ~m) | (b & m); }
 inline uint8 blend_uint(uint8 a, uint8 b, int8 m) { return (a & ~as_uint8(m)) | (b & as_uint8(m)); }
-inline ulong8 blend_ulong(ulong8 a, ulong8 b, int8 m) {
-    const ulong8 w = as_ulong8(convert_long8(m));
+inline ulong4 wide_mask(int4 m) { return as_ulong4(convert_long4(m)); }
+inline ulong4 blend_ulong(ulong4 a, ulong4 b, int4 m) {
+    const ulong4 w = wide_mask(m);
     return (a & ~w) | (b & w);
 }
+/* The lane mask of the masks of two ulong4 comparisons (lanes 0-3, 4-7). */
+inline int8 lane_mask(long4 lo, long4 hi) { return (int8)(convert_int4(lo), convert_int4(hi)); }
 inline int any_lane(int8 m) {
     const int4 h = m.lo | m.hi;
     const int2 q = h.lo | h.hi;
     return (q.x | q.y) != 0;
 }
 
-/* K = key . slot per lane, and the operations the searches need on it. */
-/* or_all_ones(a, m): all ones where m is set, the largest xor ("no neighbour"). */
+/* K = key . slot per lane, and the operations the searches need on it, in
+ * place or into the first argument. gather(p, keys, j): p = K_j.
+ * or_all_ones(p, m): all ones where m is set, the largest xor ("no neighbour"). */
 #if KEY_BITS == 64
 typedef ulong key_t;
-typedef ulong8 keys_t;
-typedef struct { ulong8 hi; uint8 lo; } prefix_t;  /* 96 bits, compared as (hi, lo) */
-inline prefix_t concat(keys_t k, int8 j) { prefix_t p = {k, as_uint8(j)}; return p; }
-inline prefix_t xor_keys(prefix_t a, prefix_t b) { prefix_t p = {a.hi ^ b.hi, a.lo ^ b.lo}; return p; }
-inline int8 prefix_le(prefix_t a, prefix_t b) {
-    return convert_int8((a.hi < b.hi) | ((a.hi == b.hi) & convert_long8(a.lo <= b.lo)));
+typedef struct { ulong4 lo, hi; uint8 slot; } prefix_t;  /* 96 bits, compared as (key, slot) */
+inline void gather(prefix_t *p, __global const key_t *keys, int8 j) {
+    p->lo = (ulong4)(keys[j.s0], keys[j.s1], keys[j.s2], keys[j.s3]);
+    p->hi = (ulong4)(keys[j.s4], keys[j.s5], keys[j.s6], keys[j.s7]);
+    p->slot = as_uint8(j);
 }
-inline int8 prefix_lt(prefix_t a, prefix_t b) {
-    return convert_int8((a.hi < b.hi) | ((a.hi == b.hi) & convert_long8(a.lo < b.lo)));
+/* K_i, K_{i+1} and K_{i-1} of a whole aligned group i = i0 .. i0+LANES-1:
+ * one vector load. */
+inline void load_group(prefix_t *kc, prefix_t *ku, prefix_t *kd, __global const key_t *keys,
+                       int i0, int8 i) {
+    const ulong4 lo = *(__global const ulong4 *)(keys + i0);
+    const ulong4 hi = *(__global const ulong4 *)(keys + i0 + LANES / 2);
+    const key_t next = keys[i0 + LANES], prev = keys[i0 > 0 ? i0 - 1 : 0];
+    kc->lo = lo;
+    kc->hi = hi;
+    kc->slot = as_uint8(i);
+    ku->lo = (ulong4)(lo.s1, lo.s2, lo.s3, hi.s0);
+    ku->hi = (ulong4)(hi.s1, hi.s2, hi.s3, next);
+    ku->slot = as_uint8(i + 1);
+    kd->lo = (ulong4)(prev, lo.s0, lo.s1, lo.s2);
+    kd->hi = (ulong4)(lo.s3, hi.s0, hi.s1, hi.s2);
+    kd->slot = as_uint8(i - 1);
 }
-inline prefix_t prefix_select(prefix_t a, prefix_t b, int8 m) {
-    prefix_t p = {blend_ulong(a.hi, b.hi, m), blend_uint(a.lo, b.lo, m)};
-    return p;
+inline void xor_keys(prefix_t *p, const prefix_t *a, const prefix_t *b) {
+    p->lo = a->lo ^ b->lo;
+    p->hi = a->hi ^ b->hi;
+    p->slot = a->slot ^ b->slot;
 }
-inline prefix_t or_all_ones(prefix_t a, int8 m) {
-    prefix_t p = {a.hi | as_ulong8(convert_long8(m)), a.lo | as_uint8(m)};
-    return p;
+inline int8 prefix_le(const prefix_t *a, const prefix_t *b) {
+    const int8 s = a->slot <= b->slot;
+    return lane_mask((a->lo < b->lo) | ((a->lo == b->lo) & convert_long4(s.lo)),
+                     (a->hi < b->hi) | ((a->hi == b->hi) & convert_long4(s.hi)));
+}
+inline int8 prefix_lt(const prefix_t *a, const prefix_t *b) {
+    const int8 s = a->slot < b->slot;
+    return lane_mask((a->lo < b->lo) | ((a->lo == b->lo) & convert_long4(s.lo)),
+                     (a->hi < b->hi) | ((a->hi == b->hi) & convert_long4(s.hi)));
+}
+inline void prefix_select(prefix_t *p, const prefix_t *a, const prefix_t *b, int8 m) {
+    p->lo = blend_ulong(a->lo, b->lo, m.lo);
+    p->hi = blend_ulong(a->hi, b->hi, m.hi);
+    p->slot = blend_uint(a->slot, b->slot, m);
+}
+inline void or_all_ones(prefix_t *p, int8 m) {
+    p->lo |= wide_mask(m.lo);
+    p->hi |= wide_mask(m.hi);
+    p->slot |= as_uint8(m);
 }
 #else
 typedef uint key_t;
-typedef uint8 keys_t;
-typedef ulong8 prefix_t;  /* key << 32 | slot */
-inline prefix_t concat(keys_t k, int8 j) { return (convert_ulong8(k) << 32) | convert_ulong8(as_uint8(j)); }
-inline prefix_t xor_keys(prefix_t a, prefix_t b) { return a ^ b; }
-inline int8 prefix_le(prefix_t a, prefix_t b) { return convert_int8(a <= b); }
-inline int8 prefix_lt(prefix_t a, prefix_t b) { return convert_int8(a < b); }
-inline prefix_t prefix_select(prefix_t a, prefix_t b, int8 m) { return blend_ulong(a, b, m); }
-inline prefix_t or_all_ones(prefix_t a, int8 m) { return a | as_ulong8(convert_long8(m)); }
+typedef struct { ulong4 lo, hi; } prefix_t;  /* key << 32 | slot */
+inline void concat(prefix_t *p, uint8 k, int8 j) {
+    p->lo = (convert_ulong4(k.lo) << 32) | convert_ulong4(as_uint4(j.lo));
+    p->hi = (convert_ulong4(k.hi) << 32) | convert_ulong4(as_uint4(j.hi));
+}
+inline void gather(prefix_t *p, __global const key_t *keys, int8 j) {
+    concat(p, (uint8)(keys[j.s0], keys[j.s1], keys[j.s2], keys[j.s3],
+                      keys[j.s4], keys[j.s5], keys[j.s6], keys[j.s7]), j);
+}
+/* K_i, K_{i+1} and K_{i-1} of a whole aligned group i = i0 .. i0+LANES-1:
+ * one vector load. */
+inline void load_group(prefix_t *kc, prefix_t *ku, prefix_t *kd, __global const key_t *keys,
+                       int i0, int8 i) {
+    const uint8 k = *(__global const uint8 *)(keys + i0);
+    const key_t next = keys[i0 + LANES], prev = keys[i0 > 0 ? i0 - 1 : 0];
+    concat(kc, k, i);
+    concat(ku, (uint8)(k.s1, k.s2, k.s3, k.s4, k.s5, k.s6, k.s7, next), i + 1);
+    concat(kd, (uint8)(prev, k.s0, k.s1, k.s2, k.s3, k.s4, k.s5, k.s6), i - 1);
+}
+inline void xor_keys(prefix_t *p, const prefix_t *a, const prefix_t *b) {
+    p->lo = a->lo ^ b->lo;
+    p->hi = a->hi ^ b->hi;
+}
+inline int8 prefix_le(const prefix_t *a, const prefix_t *b) {
+    return lane_mask(a->lo <= b->lo, a->hi <= b->hi);
+}
+inline int8 prefix_lt(const prefix_t *a, const prefix_t *b) {
+    return lane_mask(a->lo < b->lo, a->hi < b->hi);
+}
+inline void prefix_select(prefix_t *p, const prefix_t *a, const prefix_t *b, int8 m) {
+    p->lo = blend_ulong(a->lo, b->lo, m.lo);
+    p->hi = blend_ulong(a->hi, b->hi, m.hi);
+}
+inline void or_all_ones(prefix_t *p, int8 m) {
+    p->lo |= wide_mask(m.lo);
+    p->hi |= wide_mask(m.hi);
+}
 #endif
 
 /* 2^msb(x) - 1: the xors below it share more leading bits than x does. */
-inline ulong8 below_msb64(ulong8 x) {
+inline ulong4 below_msb64(ulong4 x) {
     x |= x >> 1; x |= x >> 2; x |= x >> 4; x |= x >> 8; x |= x >> 16; x |= x >> 32;
     return x >> 1;
 }
@@ -105,25 +182,27 @@ inline uint8 below_msb32(uint8 x) {
     x |= x >> 1; x |= x >> 2; x |= x >> 4; x |= x >> 8; x |= x >> 16;
     return x >> 1;
 }
-inline prefix_t below_msb(prefix_t x) {
-    prefix_t p = {below_msb64(x.hi), blend_uint(below_msb32(x.lo), (uint8)(~0u), convert_int8(x.hi != 0))};
-    return p;
+inline void below_msb(prefix_t *p) {
+    p->slot = blend_uint(below_msb32(p->slot), (uint8)(~0u), lane_mask(p->lo != 0, p->hi != 0));
+    p->lo = below_msb64(p->lo);
+    p->hi = below_msb64(p->hi);
 }
 #else
-inline prefix_t below_msb(prefix_t x) { return below_msb64(x); }
-#endif
-
-inline keys_t gather(__global const key_t *keys, int8 j) {
-    return (keys_t)(keys[j.s0], keys[j.s1], keys[j.s2], keys[j.s3],
-                    keys[j.s4], keys[j.s5], keys[j.s6], keys[j.s7]);
+inline void below_msb(prefix_t *p) {
+    p->lo = below_msb64(p->lo);
+    p->hi = below_msb64(p->hi);
 }
+#endif
 
 /* delta(i, j) > delta(i, m) per lane, given mask = below_msb(x_m); false where
  * j is outside [0, n) (delta -1). */
-inline int8 shares_more(__global const key_t *keys, int n, prefix_t ki, int8 j, prefix_t mask) {
+inline int8 shares_more(__global const key_t *keys, int n, const prefix_t *ki, int8 j,
+                        const prefix_t *mask) {
     const int8 valid = as_uint8(j) < (uint)n;
-    const int8 jc = j & valid;
-    return valid & prefix_le(xor_keys(ki, concat(gather(keys, jc), jc)), mask);
+    prefix_t x;
+    gather(&x, keys, j & valid);
+    xor_keys(&x, ki, &x);
+    return valid & prefix_le(&x, mask);
 }
 
 inline void set_children(__global int *node_words, int node, int a, int b) {
@@ -140,39 +219,42 @@ inline void emit_lanes(__global const key_t *keys, int n, int i0, int limit,
                        __global int *node_words, __global int *parent) {
     int8 i = i0 + (int8)(0, 1, 2, 3, 4, 5, 6, 7);
     i = blend_int(i, (int8)(limit - 1), i >= limit);
-    keys_t kc, ku, kd;  /* keys i, i+1 (<= n-1) and i-1 (slot 0 for i = 0) */
+    prefix_t ki, up, down;  /* K_i, then its xors with K_{i+1} (i+1 <= n-1) and K_{i-1} */
     if (i0 + LANES <= limit && i0 % LANES == 0) {  /* whole aligned group: one load */
-        kc = *(__global const keys_t *)(keys + i0);
-        const key_t next = keys[i0 + LANES], prev = keys[i0 > 0 ? i0 - 1 : 0];
-        ku = (keys_t)(kc.s1, kc.s2, kc.s3, kc.s4, kc.s5, kc.s6, kc.s7, next);
-        kd = (keys_t)(prev, kc.s0, kc.s1, kc.s2, kc.s3, kc.s4, kc.s5, kc.s6);
+        load_group(&ki, &up, &down, keys, i0, i);
     } else {
-        kc = gather(keys, i);
-        ku = gather(keys, i + 1);
-        kd = gather(keys, (i - 1) & ~(i == 0));  /* slot 0 for node 0: masked below */
+        gather(&ki, keys, i);
+        gather(&up, keys, i + 1);
+        gather(&down, keys, (i - 1) & ~(i == 0));  /* slot 0 for node 0: masked below */
     }
-    const prefix_t ki = concat(kc, i);
-    const prefix_t up = xor_keys(ki, concat(ku, i + 1));
-    const prefix_t down = or_all_ones(xor_keys(ki, concat(kd, i - 1)), i == 0);
-    const int8 forward = prefix_lt(up, down);  /* d = +1 */
+    xor_keys(&up, &ki, &up);
+    xor_keys(&down, &ki, &down);
+    or_all_ones(&down, i == 0);
+    const int8 forward = prefix_lt(&up, &down);  /* d = +1 */
     const int8 back = ~forward;
     /* Node 0 has no left neighbour (delta -1): every key shares more. */
-    const prefix_t mask_min = or_all_ones(below_msb(prefix_select(up, down, forward)), i == 0);
+    prefix_t mask_min;
+    prefix_select(&mask_min, &up, &down, forward);
+    below_msb(&mask_min);
+    or_all_ones(&mask_min, i == 0);
     int8 lmax = 2, going = (int8)(-1);
     for (;;) {
-        going &= shares_more(keys, n, ki, i + ((lmax ^ back) - back), mask_min);
+        going &= shares_more(keys, n, &ki, i + ((lmax ^ back) - back), &mask_min);
         if (!any_lane(going)) break;
         lmax = blend_int(lmax, lmax << 1, going);
     }
     int8 l = lmax >> 1;
     for (int8 t = lmax >> 2; any_lane(t >= 1); t >>= 1)
-        l += t & (t >= 1) & shares_more(keys, n, ki, i + (((l + t) ^ back) - back), mask_min);
+        l += t & (t >= 1) & shares_more(keys, n, &ki, i + (((l + t) ^ back) - back), &mask_min);
     const int8 j = i + ((l ^ back) - back);
-    const prefix_t mask_node = below_msb(xor_keys(ki, concat(gather(keys, j), j)));
+    prefix_t mask_node;
+    gather(&mask_node, keys, j);
+    xor_keys(&mask_node, &ki, &mask_node);
+    below_msb(&mask_node);
     int8 s = 0, t = l, open = l > 1;
     while (any_lane(open)) {
         t = (t + 1) >> 1;
-        s += t & open & shares_more(keys, n, ki, i + (((s + t) ^ back) - back), mask_node);
+        s += t & open & shares_more(keys, n, &ki, i + (((s + t) ^ back) - back), &mask_node);
         open &= t > 1;
     }
     const int8 gamma = i + ((s ^ back) - back) + back;
