@@ -92,3 +92,36 @@ def test_self_test_can_be_switched_off(tmp_path):
     proc = subprocess.run([sys.executable, "-c", "import lbvh; lbvh.get_context(); print('ok')"],
                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert proc.stdout.strip() == "ok", proc.stderr[-2000:]
+
+
+@pytest.mark.parametrize("cpu", ["znver3", "haswell"])
+def test_self_test_passes_when_compiled_for_an_avx2_cpu(tmp_path, cpu):
+    # PoCL's kernel library here is its AVX-512 one; compiling the kernels for
+    # an AVX2 CPU is the configuration of PoCL 3.0 on AMD Zen 4 (znver3 and the
+    # avx512 library), where 64-byte vectors crossing into the library crashed.
+    env = dict(os.environ, LBVH_POCL_CPU=cpu, XDG_CACHE_HOME=str(tmp_path / "xdg"))
+    code = ("import lbvh, lbvh.selftest as s\n"
+            "from lbvh.pocl_target import target_cpu\n"
+            "ctx = lbvh.get_context()\n"
+            "print('target', target_cpu(ctx.device))\n"
+            "print([r.summary() for r in s.results().values()])\n")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=300)
+    out = proc.stdout + proc.stderr
+    if "target None" in proc.stdout:
+        pytest.skip("PoCL's device record could not be read: the compile target cannot be set")
+    assert proc.returncode == 0 and f"'{cpu}')" in proc.stdout, out[-3000:]
+    assert "passed (in" in proc.stdout, out[-3000:]
+
+
+def test_a_fresh_compile_is_quiet(tmp_path):
+    # The README's main job with PoCL's cache off (every program compiled):
+    # nothing on stderr, no "N warnings generated.", no CompilerWarning.
+    env = dict(os.environ, POCL_KERNEL_CACHE="0", XDG_CACHE_HOME=str(tmp_path / "xdg"),
+               PYTHONWARNINGS="always")
+    proc = subprocess.run([sys.executable, "-m", "lbvh.cli", "render",
+                           str(REPO / "scenes" / "teapot.json"), "-o", str(tmp_path / "t.png"),
+                           "--size", "32x24"], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stderr == "", proc.stderr[-3000:]
