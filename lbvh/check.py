@@ -29,14 +29,23 @@ from the ray's origin to the triangle's farthest vertex over ``|d|`` (the size
 of the numbers the float32 test subtracts), ``kappa >= 1`` the conditioning of
 the triangle seen along the ray (the sum of the magnitudes of the products in
 its edge functions over their sum: about 1 for a fat triangle, its aspect ratio
-for a sliver). It is tests/test_traverse.py's bound times ``kappa``.
+for a sliver). It is tests/test_traverse.py's bound times ``kappa``. Whatever
+the conditioning, the kernel's ``t`` must also lie in the range of the
+triangle's vertex depths (along the ray, over ``|d|``), widened by
+``16 u`` of the largest: the kernel's ``t`` is a convex combination of them
+(:class:`PairGeometry`), so a bound that ``kappa / |cos a|`` makes meaningless
+(1e70 and more for slivers seen edge-on) does not let any ``t`` pass.
 
 The oracle computes in float64, the kernel in float32: where they disagree,
 :class:`Judge` decides with the kernel's own rounding errors (a hit that
 exact arithmetic gives for some input within those errors is right; a miss
 is wrong only if a triangle is hit for every such input). Rays through shared
 edges and vertices, grazing and near-edge hits, ties between triangles at the
-same ``t`` and triangles at the degeneracy threshold land there.
+same ``t`` and triangles at the degeneracy threshold land there. So do rays in
+a triangle's plane (``det = 0`` in float64): the kernel's rounded coordinates
+leave the plane, and it may hit such a triangle; a hit there is right where
+the origin lies on the segment the triangle projects to (within rounding) and
+``t`` within the vertices' depths (:class:`PairGeometry`).
 
 In the table, ``wrong`` counts rays with a wrong answer (closest hit, any hit,
 and leaks), ``ambig`` rays whose answer differs from the oracle's but is right
@@ -177,18 +186,32 @@ class PairGeometry:
     origin at the ray's, permuted and sheared so that the ray is +z), with bounds
     on the float32 kernel's rounding. One entry per pair:
 
-    * ``t``: distance of the hit on the triangle's plane (NaN if parallel);
+    * ``t``: distance of the hit on the triangle's plane (NaN or inf where ``det = 0``:
+      the ray lies in the plane or parallel to it; the kernel's rounding can still
+      make a hit of a triangle in the ray's plane, which ``lo, hi`` then bound);
     * ``bound``: how far the kernel's ``t`` may be from it (module docstring);
     * ``robust``: every rounding the kernel can do still gives a hit in
       ``[tmin, tmax]`` (all edge functions clear of zero by their error bound,
       ``t`` clear of the interval's ends, the triangle not degenerate);
     * ``possible``: some rounding gives a hit (no edge function is clearly on the
-      wrong side); the kernel may return it, or not.
+      wrong side, and ``[lo, hi]`` meets ``[tmin, tmax]``); the kernel may return
+      it, or not;
+    * ``lo``, ``hi``: where the kernel's ``t`` of a hit on the triangle must lie
+      whatever the conditioning: the kernel returns only hits whose three edge
+      functions share a sign, so its ``t = (U z_a + V z_b + W z_c) / (U + V + W)``
+      is a convex combination of the vertices' depths ``z / d_kz``, up to its
+      rounding: ``[min z, max z] / d_kz`` widened by ``16 u max |z / d_kz|`` (the
+      kernel's is below ``10 u``: ``v - o``, ``1 / d_kz``, the products, the two
+      sums, the quotient) and by ``UNDERFLOW``. Where ``bound`` is meaningless (a
+      sliver or a triangle seen edge-on: ``kappa / |cos a|`` of 1e70 and more,
+      bounds far beyond float32's range) this interval still decides.
     """
     t: np.ndarray
     bound: np.ndarray
-    robust: np.ndarray
-    possible: np.ndarray
+    robust: np.ndarray | None
+    possible: np.ndarray | None
+    lo: np.ndarray
+    hi: np.ndarray
 
 
 def _edge_function(p: tuple, q: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -234,6 +257,7 @@ def _pair_geometry(case: Case, ray: np.ndarray, tri: np.ndarray, degenerate32: n
     o = case.origins[ray].astype(np.float64)[rows, axes]
     d = d32.astype(np.float64)[rows, axes]
     sx, sy, sz = d[:, 0] / d[:, 2], d[:, 1] / d[:, 2], 1.0 / d[:, 2]
+    dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
     corners, depth = [], []
     reach = np.zeros(len(ray))  # farthest vertex from the origin
     for corner in range(3):
@@ -241,7 +265,9 @@ def _pair_geometry(case: Case, ray: np.ndarray, tri: np.ndarray, degenerate32: n
         reach = np.maximum(reach, np.linalg.norm(r, axis=1))
         # the sizes carry the absolute floor of underflowing differences and shears
         floor = UNDERFLOW / (16 * U) * (1.0 + np.abs(r[:, 2]))
-        corners.append((r[:, 0] - sx * r[:, 2], r[:, 1] - sy * r[:, 2],
+        # r_x - Sx r_z as the kernel forms it (times d_kz, no quotient before the
+        # difference): exactly 0 for a vertex on the ray's line
+        corners.append(((r[:, 0] * dz - r[:, 2] * dx) / dz, (r[:, 1] * dz - r[:, 2] * dy) / dz,
                         np.abs(r[:, 0]) + np.abs(sx * r[:, 2]) + floor,
                         np.abs(r[:, 1]) + np.abs(sy * r[:, 2]) + floor))
         depth.append(r[:, 2] * sz)
@@ -262,19 +288,41 @@ def _pair_geometry(case: Case, ray: np.ndarray, tri: np.ndarray, degenerate32: n
     outside = (((u_ < -eu) | (v_ < -ev) | (w_ < -ew)) & ((u_ > eu) | (v_ > ev) | (w_ > ew)))
     inside = (((u_ > eu) & (v_ > ev) & (w_ > ew)) | ((u_ < -eu) & (v_ < -ev) & (w_ < -ew)))
     tmin, tmax = case.tmin[ray].astype(np.float64), case.tmax[ray].astype(np.float64)
+    depths = np.stack(depth, axis=1)
+    margin = T_BOUND * np.abs(depths).max(axis=1) + UNDERFLOW
+    lo, hi = depths.min(axis=1) - margin, depths.max(axis=1) + margin
+    # The kernel's projected triangle holds the origin only if the box of its three
+    # projected vertices does: the origin lies in the exact vertices' box widened by
+    # their rounding. (Implied by ~outside for a triangle seen at an angle; for one
+    # seen edge-on, which projects onto a segment, it says whether the origin lies
+    # on that segment or beside it.)
+    in_box = np.ones(len(ray), bool)
+    for k in (0, 1):
+        ends = np.stack([p[k] for p in corners], axis=1)
+        slack = 16 * U * np.stack([p[k + 2] for p in corners], axis=1)
+        in_box &= ((ends - slack).min(axis=1) <= 0) & ((ends + slack).max(axis=1) >= 0)
+    # det = 0 (a ray in the triangle's plane, or parallel to it): no t on the plane;
+    # a hit the kernel's rounding makes has its t in [lo, hi]
+    plane = np.isfinite(t)
+    t_fits = np.where(plane, (t >= tmin - bound) & (t <= tmax + bound), True)
     kernel_may = ~degenerate32
     robust = (kernel_may & ~degenerate64 & inside & (np.abs(det) > eu + ev + ew)
               & (t >= tmin + bound) & (t <= tmax - bound))
-    possible = kernel_may & ~outside & (t >= tmin - bound) & (t <= tmax + bound)
-    return PairGeometry(t, bound, robust, possible | robust)
+    possible = (kernel_may & ~outside & in_box & t_fits & (hi >= tmin) & (lo <= tmax))
+    return PairGeometry(t, bound, robust, possible | robust, lo, hi)
 
 
 def t_agrees(g: PairGeometry, t: np.ndarray) -> np.ndarray:
-    """Whether the kernel's ``t`` is the pairs' ``t`` within the bound; a ``t`` past
-    float32's range is ``inf`` for both."""
+    """Whether the kernel's ``t`` is the pairs' ``t`` within the bound and within
+    ``[lo, hi]``. The kernel reports a ``t`` past float32's range as ``inf`` (its
+    primitive kept): that agrees where the values it may have (``t`` within the
+    bound, in ``[lo, hi]``) reach past float32's range."""
+    big = float(np.finfo(np.float32).max) * (1 - T_BOUND)
     with np.errstate(invalid="ignore"):
-        beyond = np.isinf(t) & (np.abs(g.t) >= float(np.finfo(np.float32).max) * (1 - T_BOUND))
-        return (np.abs(g.t - t) <= g.bound) | beyond
+        plane = np.isfinite(g.t)
+        beyond = (t == np.inf) & (g.hi >= big) & (~plane | (g.t + g.bound >= big))
+        near = np.where(plane, np.abs(g.t - t) <= g.bound, True)  # det = 0: [lo, hi]
+        return (near & (t >= g.lo) & (t <= g.hi)) | beyond
 
 
 @dataclass
@@ -314,11 +362,14 @@ class Judge:
         ref = self.ref
         rays = np.flatnonzero(ref.hit)
         bound = np.full(len(prim), np.inf)
+        lo, hi = np.full(len(prim), -np.inf), np.full(len(prim), np.inf)
         if len(rays):
-            bound[rays] = self.geometry(rays, ref.prim[rays]).bound
+            g = self.geometry(rays, ref.prim[rays])
+            bound[rays], lo[rays], hi[rays] = g.bound, g.lo, g.hi
         with np.errstate(invalid="ignore"):  # inf - inf on rays both miss
             # t == ref.t also covers a hit beyond float32 that both report as inf
-            same = (prim == ref.prim) & (~ref.hit | (t == ref.t) | (np.abs(t - ref.t) <= bound))
+            near = (np.abs(t - ref.t) <= bound) & (t >= lo) & (t <= hi)
+            same = (prim == ref.prim) & (~ref.hit | (t == ref.t) | near)
         return same, bound
 
     def right_answers(self, rays: np.ndarray, prim: np.ndarray, t: np.ndarray,
@@ -378,8 +429,10 @@ class Judge:
                 first_robust = np.min(np.where(robust, t_all + bound, np.inf), axis=1)
             p, tk = prim[chunk], t[chunk]
             row, col = np.arange(len(r)), np.maximum(p, 0)
+            lo, hi = g.lo.reshape(robust.shape), g.hi.reshape(robust.shape)
             genuine = (g.possible.reshape(robust.shape)[row, col]
-                       & t_agrees(PairGeometry(t_all[row, col], bound[row, col], None, None), tk))
+                       & t_agrees(PairGeometry(t_all[row, col], bound[row, col], None, None,
+                                               lo[row, col], hi[row, col]), tk))
             if closest:
                 genuine &= tk <= first_robust
             out[chunk] = np.where(p >= 0, genuine, ~robust.any(axis=1))

@@ -1,7 +1,11 @@
 """Brute-force ray/triangle intersection in numpy: the exact oracle of the ray queries.
 
 Every ray is tested against every triangle with the watertight test of Woop,
-Benthin and Wald (JCGT 2013), written once for two precisions:
+Benthin and Wald (JCGT 2013), written once for two precisions. The shear is
+taken times ``d_kz`` as in the kernel (``x = ez p_kx - ex p_kz`` instead of
+``p_kx - Sx p_kz``, see :class:`_Rays`): the same test in exact arithmetic,
+and in either precision a vertex exactly on the ray's line lands exactly on
+it (a ray along an edge is then in the triangle's plane: ``det = 0``, a miss).
 
 ``dtype=np.float64`` (the oracle)
     Coordinates are the caller's float32 values, the arithmetic is float64:
@@ -14,9 +18,12 @@ Benthin and Wald (JCGT 2013), written once for two precisions:
 ``dtype=np.float32`` (the kernel's twin)
     The same operations in the same order as ``kernels/traverse.cl`` with its
     default watertight test (including the float64 recomputation of an edge
-    function that rounds to zero): for the triangle the kernel reports, its
-    ``t, u, v`` equal the twin's bit for bit on a device with correctly
-    rounded division.
+    function that rounds to zero, the whole test in float64 for rays whose
+    shear lies below float32's range, the direction scaled by ``2^-texp``,
+    and accept_hit's rule: a hit counts only where the ray enters the
+    triangle's own box by the slab test, its ``t`` raised to that box's
+    entry): for the triangle the kernel reports, its ``t, u, v`` equal the
+    twin's bit for bit on a device with correctly rounded division.
 
 Zero-area triangles are never hit, in both precisions and in the kernel: a
 triangle is degenerate when ``|e1 x e2| <= 2^-20 |e1| |e2|`` (see
@@ -88,8 +95,37 @@ def degenerate_triangles(vertices: np.ndarray, faces: np.ndarray, dtype=np.float
         return zero | (nn <= dtype(DEGENERATE_SINE) ** 2 * aa * bb)
 
 
+#: make_ray's range of directions (kernels/traverse.cl): a direction whose largest
+#: component lies outside [2^-60, 2^60] is traced as ``d * 2^-texp``.
+_TEXP_RANGE = 60
+
+
+def _texp(directions: np.ndarray) -> np.ndarray:
+    """``int64 (N,)``: the power of two the kernel divides each direction by (make_ray)."""
+    dmax = np.abs(directions).max(axis=1).astype(np.float64)
+    _, e = np.frexp(dmax)
+    e = e.astype(np.int64)
+    out = np.where(e > 0, e - _TEXP_RANGE, e + _TEXP_RANGE - 1)
+    inside = (dmax >= 2.0 ** -_TEXP_RANGE) & (dmax <= 2.0 ** _TEXP_RANGE)
+    return np.where(inside, 0, out)
+
+
+def _exact_under(c: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """``bool``: whether ``c * 2^-e`` is exact in ``c``'s precision."""
+    return np.ldexp(np.ldexp(c, -e), e) == c
+
+
 class _Rays:
-    """Validated rays with the per-ray constants of the watertight test."""
+    """Validated rays with the per-ray constants of the watertight test.
+
+    The shear of Woop et al. 2013 (``Sx = d_kx / d_kz``, ``Sy = d_ky / d_kz``) is
+    taken times ``d_kz`` as the kernel does (make_ray): the sheared coordinates
+    are ``x = ez p_kx - ex p_kz``, ``y = ez p_ky - ey p_kz`` with ``(ex, ey, ez)``
+    ``= (d_kx, d_ky, d_kz) 2^-e``, ``|ez|`` in ``[0.5, 1)``. In float32 a ray whose
+    ``d_kx`` or ``d_ky`` would lose bits in that scaling is ``hard``: the kernel
+    tests its triangles in double with ``e = 0``. The float32 twin also traces
+    ``d * 2^-texp`` (make_ray) and scales ``t`` back, as the kernel does.
+    """
 
     def __init__(self, origins: Any, directions: Any, tmin: Any, tmax: Any, dtype) -> None:
         rays = check_rays(origins, directions, tmin, tmax)
@@ -97,13 +133,37 @@ class _Rays:
         self.origin = rays.origins
         self.direction = rays.directions
         self.tmin, self.tmax = rays.intervals()
-        self.axes = woop_axes(self.direction)
         rows = np.arange(self.count)[:, None]
-        d = self.direction[rows, self.axes].astype(dtype)
+        if dtype == np.float32:
+            self.texp = _texp(self.direction)
+            traced = np.ldexp(self.direction, -self.texp[:, None]).astype(np.float32)
+        else:
+            self.texp = np.zeros(self.count, np.int64)
+            traced = self.direction
+        self.axes = woop_axes(traced)
+        d = traced[rows, self.axes].astype(dtype)
         self.o_perm = self.origin[rows, self.axes].astype(dtype)
-        # Shear constants as the kernel computes them, in the chosen precision.
+        _, e = np.frexp(d[:, 2])
+        e = e.astype(np.int64)
+        if dtype == np.float32:
+            self.hard = (e > 0) & ~(_exact_under(d[:, 0], e) & _exact_under(d[:, 1], e))
+            e = np.where(self.hard, 0, e)
+        else:
+            self.hard = np.zeros(self.count, bool)   # float64 holds every scaled float32 exactly
+        # (ex, ey, ez) and sz = 1 / d_kz, as the kernel computes them, in the chosen precision
+        self.shear = np.ldexp(d, -e[:, None]).astype(dtype)
         with np.errstate(divide="ignore"):
-            self.shear = np.stack([d[:, 0] / d[:, 2], d[:, 1] / d[:, 2], dtype(1) / d[:, 2]], axis=1)
+            self.sz = dtype(1) / d[:, 2]
+        if dtype == np.float32:
+            # the slab test of accept_hit (kernels/traverse.cl) on d * 2^-texp
+            self.traced = traced
+            self.tmin_traced = np.ldexp(self.tmin.astype(np.float32), self.texp).astype(np.float32)
+            with np.errstate(divide="ignore", over="ignore"):
+                self.inv = (np.float32(1) / traced).astype(np.float32)
+            big = np.float32(np.finfo(np.float32).max)
+            self.inv_near = np.where((traced != 0) & np.isinf(self.inv),
+                                     np.copysign(big, traced), self.inv).astype(np.float32)
+            self.negative = np.signbit(traced)
 
 
 def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: np.ndarray,
@@ -114,14 +174,18 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
     """
     axes = rays.axes[ray]
     o = rays.o_perm[ray]
-    sx, sy, sz = (rays.shear[ray, k] for k in range(3))
-    x, y, z = [], [], []
+    ex, ey, ez = (rays.shear[ray, k] for k in range(3))
+    sz = rays.sz[ray]
+    x, y, z, rel64 = [], [], [], []
     for corner in range(3):
         vid = f[tri, corner]
-        rel = [v[vid, axes[:, k]].astype(dtype) - o[:, k] for k in range(3)]
+        p = [v[vid, axes[:, k]] for k in range(3)]
+        rel = [p[k].astype(dtype) - o[:, k] for k in range(3)]
         z.append(rel[2])
-        x.append(rel[0] - sx * rel[2])
-        y.append(rel[1] - sy * rel[2])
+        with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+            x.append(rel[0] * ez - rel[2] * ex)
+            y.append(rel[1] * ez - rel[2] * ey)
+        rel64.append(p)
     (ax, bx, cx), (ay, by, cy) = x, y
     with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
         U = cx * by - cy * bx
@@ -141,6 +205,7 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
             redo = ((np.abs(U) < tiny) | (np.abs(V) < tiny) | (np.abs(W) < tiny)
                     | ~((np.abs(det) >= tiny) & (np.abs(det) <= big))
                     | ~((np.abs(T) >= tiny) & (np.abs(T) <= big)))
+            redo &= ~rays.hard[ray]
             if redo.any():
                 d = [q[redo].astype(np.float64) for q in (ax, ay, bx, by, cx, cy)]
                 zd = [q[redo].astype(np.float64) for q in z]
@@ -155,8 +220,65 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
                 t[redo] = (Td / detd).astype(np.float32)
                 bu[redo] = (Vd / detd).astype(np.float32)
                 bv[redo] = (Wd / detd).astype(np.float32)
+            hard = rays.hard[ray]
+            if hard.any():
+                # hit_triangle_hard: the whole test in double, d as it is (e = 0)
+                h = np.flatnonzero(hard)
+                od = o[h].astype(np.float64)
+                exd, eyd, ezd = (q[h].astype(np.float64) for q in (ex, ey, ez))
+                xs, ys, zs = [], [], []
+                for p in rel64:
+                    r = [p[k][h].astype(np.float64) - od[:, k] for k in range(3)]
+                    zs.append(r[2])
+                    xs.append(r[0] * ezd - r[2] * exd)
+                    ys.append(r[1] * ezd - r[2] * eyd)
+                Uh = xs[2] * ys[1] - ys[2] * xs[1]
+                Vh = xs[0] * ys[2] - ys[0] * xs[2]
+                Wh = xs[1] * ys[0] - ys[1] * xs[0]
+                deth = Uh + Vh + Wh
+                inside[h] = (~(((Uh < 0) | (Vh < 0) | (Wh < 0)) & ((Uh > 0) | (Vh > 0) | (Wh > 0)))
+                             & (deth != 0))
+                t[h] = ((Uh * zs[0] + Vh * zs[1] + Wh * zs[2]) / (deth * ezd)).astype(np.float32)
+                bu[h] = (Vh / deth).astype(np.float32)
+                bv[h] = (Wh / deth).astype(np.float32)
+            inside &= _own_box(v, f, rays, ray, tri, t)
+            # t was measured along d * 2^-texp
+            t = np.ldexp(t, -rays.texp[ray]).astype(np.float32)
     inside &= ~skip[tri]
     return np.where(inside, t, np.inf), bu, bv
+
+
+#: The slab test's factor on the far distance (SLAB_PAD in kernels/traverse.cl).
+SLAB_PAD = np.float32(1 + 2.0 ** -21)
+
+
+def _keep_max(x: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """max_keep of the kernel: ``x > m ? x : m`` (NaN in x keeps m)."""
+    return np.where(x > m, x, m)
+
+
+def _own_box(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: np.ndarray,
+             t: np.ndarray) -> np.ndarray:
+    """accept_hit of kernels/traverse.cl in float32, for the float32 twin: whether the
+    ray enters triangle ``tri``'s own box by the slab test (``bool`` per pair), and
+    ``t`` (along d * 2^-texp, updated in place) raised to that box's entry where
+    ``tmin <= t < t0``."""
+    p = v[f[tri]]                      # (pairs, 3 corners, 3 axes) float32
+    lower, upper = p.min(axis=1), p.max(axis=1)
+    neg = rays.negative[ray]
+    near, far = np.where(neg, upper, lower), np.where(neg, lower, upper)
+    o = rays.origin[ray]
+    with np.errstate(over="ignore", invalid="ignore"):
+        t0 = rays.tmin_traced[ray]
+        t1 = np.full(len(ray), np.inf, np.float32)
+        for k in range(3):
+            t0 = _keep_max((near[:, k] - o[:, k]) * rays.inv_near[ray, k], t0)
+            t1 = np.where((far[:, k] - o[:, k]) * rays.inv[ray, k] < t1,
+                          (far[:, k] - o[:, k]) * rays.inv[ray, k], t1)
+        enters = t0 <= t1 * SLAB_PAD
+        raise_ = t >= rays.tmin_traced[ray]
+        t[raise_] = _keep_max(t0, t)[raise_]
+    return enters
 
 
 def _blocks(v: np.ndarray, f: np.ndarray, pad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -158,3 +158,35 @@ def test_watertight_without_the_double_fallback():
     assert (prim.view(np.int32) >= 0).all()
     with_fallback = bvh.intersect(np.zeros_like(d), d)
     assert np.allclose(t, with_fallback.t, rtol=1e-6)
+
+
+@pytest.mark.parametrize("fp64", [True, False], ids=["fp64", "no-fp64"])
+def test_rays_with_shears_below_float32s_range_never_leak(fp64):
+    """Vertical rays tilted by components of 1e-45 .. 2^-126 (their shear d_x / d_z is
+    below float32's normal range, and 1/d_x overflows): the kernel tests their
+    triangles in double (or, without doubles, with the shear scaled only as far as
+    is exact), the slab test bounds their near planes by FLT_MAX; through shared
+    vertices and edge midpoints of the height field they still never leak."""
+    v, f, bvh, n = height_field()
+    grid = v.reshape(n + 1, n + 1, 3)
+    inner = grid[1:-1, 1:-1].reshape(-1, 3)
+    xy = np.concatenate([inner[:, :2], inner[:, :2] + [0.5, 0], inner[:, :2] + [0, 0.5],
+                         inner[:, :2] + [0.5, 0.5]])
+    o = np.concatenate([xy, np.full((len(xy), 1), 5.0)], axis=1).astype(np.float32)
+    rng = np.random.default_rng(3)
+    for tiny in (1e-45, 3e-44, 1e-40, 2.0 ** -126):
+        for down in (-1.0, -1e7, -1e18):
+            d = np.zeros((len(o), 3), np.float32)
+            d[:, 0] = rng.choice([tiny, -tiny, 0.0], len(o))
+            d[:, 1] = rng.choice([tiny, -tiny, 0.0], len(o))
+            d[:, 2] = down
+            if fp64:
+                hit = leaks(bvh, o, d, f"height field, vertical rays tilted by {tiny:g}")
+                t = hit.t * -down
+            else:
+                rays = tr.check_rays(o, d)
+                out = tr.trace_buffers(bvh, tr.upload_rays(bvh.ctx, rays), defines={"NO_FP64": 1})
+                t, _, _, prim = tr.read_hits(bvh.ctx, out)
+                assert (prim.view(np.int32) >= 0).all(), (tiny, down)
+                t = t * -down
+            assert (t > 2.9).all() and (t < 5.0).all()
