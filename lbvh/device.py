@@ -403,7 +403,6 @@ def kernel_source(filename: str) -> str:
 # damaged one removed, so that PoCL compiles it again.
 _cache_checked = False
 _cache_lock = threading.Lock()
-_removed_cache_entries: list[str] = []
 
 
 def pocl_cache_dir() -> Path:
@@ -486,10 +485,11 @@ def check_compiler_cache(root: Path | None = None) -> list[str]:
     """Remove damaged entries of PoCL's kernel cache (once per process); returns them."""
     global _cache_checked
     with _cache_lock:
-        if _cache_checked and root is None:
-            return []
-        _cache_checked = _cache_checked or root is None
-        root = pocl_cache_dir() if root is None else root
+        if root is None:
+            if _cache_checked:
+                return []
+            _cache_checked = True
+            root = pocl_cache_dir()
         removed = []
         if not root.is_dir():
             return removed
@@ -500,7 +500,6 @@ def check_compiler_cache(root: Path | None = None) -> list[str]:
             if any(not _file_whole(f) for f in files):
                 shutil.rmtree(entry, ignore_errors=True)
                 removed.append(str(entry))
-        _removed_cache_entries.extend(removed)
         return removed
 
 

@@ -107,12 +107,12 @@ def _check(ctx: dev.Context, stage=lambda name: None) -> list[str]:
     ``stage(name)`` is called before each kernel runs (the child process of
     :func:`self_test` prints it, so a crash names the kernel it crashed in).
     """
-    from .bounds import triangle_bounds, triangle_boxes_numpy
+    from .bounds import (centroid_bounds_numpy, triangle_bounds, triangle_boxes_numpy,
+                         triangle_centres_numpy)
     from .build import build_on_device
     from .emit import emit_hierarchy, emit_hierarchy_python
     from .layout import NODE_DTYPE, children_of
     from .morton import morton_codes, morton_codes_numpy
-    from .bounds import centroid_bounds_numpy, triangle_centres_numpy
     from .oracle import brute_force
     from .refit import refit_numpy
     from .sort import radix_sort, radix_sort_numpy
