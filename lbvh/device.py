@@ -592,9 +592,35 @@ def to_device(ctx: Context, array: np.ndarray) -> cl.Buffer:
     return cl.Buffer(ctx.ctx, flags, hostbuf=array)
 
 
+# Tests of uninitialised reads (tests/test_uninitialised.py): with this set to a
+# byte value, every buffer handed out uninitialised (empty, MemoryTracker.alloc,
+# new or from the pool) is first filled with it. A kernel that reads what no
+# command wrote then answers differently for different bytes.
+ENV_POISON = "LBVH_POISON_BYTE"
+_POISON = os.environ.get(ENV_POISON)
+
+
+def poison(ctx: Context, buf: cl.Buffer, nbytes: int) -> None:
+    """Fill ``buf`` with ``$LBVH_POISON_BYTE`` where it is set (tests only)."""
+    if _POISON is not None:
+        cl.enqueue_fill_buffer(ctx.queue, buf, np.uint8(int(_POISON, 0)), 0, nbytes)
+
+
 def empty(ctx: Context, nbytes: int, flags=cl.mem_flags.READ_WRITE) -> cl.Buffer:
     """An uninitialised device buffer of at least 4 bytes."""
-    return cl.Buffer(ctx.ctx, flags, max(int(nbytes), 4))
+    nbytes = max(int(nbytes), 4)
+    buf = cl.Buffer(ctx.ctx, flags, nbytes)
+    poison(ctx, buf, nbytes)
+    return buf
+
+
+def pooled_or_empty(ctx: Context, nbytes: int) -> cl.Buffer:
+    """A buffer of ``nbytes`` from the context's pool (pages already mapped), else a new one."""
+    buf = ctx.take_scratch(max(int(nbytes), 4))
+    if buf is None:
+        return empty(ctx, nbytes)
+    poison(ctx, buf, max(int(nbytes), 4))
+    return buf
 
 
 def from_device(ctx: Context, buf: cl.Buffer, dtype, shape) -> np.ndarray:
@@ -638,6 +664,7 @@ class MemoryTracker:
             except cl.Error as exc:
                 raise DeviceError(f"lbvh: allocating {nbytes:,} bytes on {self.ctx.name} failed: "
                                   f"{exc}") from exc
+        poison(self.ctx, buf, nbytes)
         if scratch:
             self._scratch_used[nbytes] = self._scratch_used.get(nbytes, 0) + 1
         self._sizes[id(buf)] = (nbytes, scratch)

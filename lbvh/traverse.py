@@ -356,7 +356,7 @@ def slot_faces_for(bvh: Any) -> cl.Buffer:
         return cached
     ctx = bvh.ctx
     nbytes = 12 * bvh.num_prims
-    out = ctx.take_scratch(nbytes) or dev.empty(ctx, nbytes)
+    out = dev.pooled_or_empty(ctx, nbytes)
     launch = ctx.launch(bvh.num_prims, min_per_item=4096, gpu_per_item=1)
     ctx.kernel(KERNEL_FILE, "order_faces", {})(
         ctx.queue, (launch.global_size,), launch.local, bvh.faces_buf, bvh.prim_order_buf,

@@ -154,7 +154,7 @@ def wide_for(bvh: Any, max_bytes: int | None = None, width: int | None = None) -
         return wide
     count, need, bufs = _levels(bvh, width, capacity)
     nbytes = count * record_bytes(width)
-    records = ctx.take_scratch(nbytes) or dev.empty(ctx, nbytes)
+    records = dev.pooled_or_empty(ctx, nbytes)
     kept = {}   # the level pass's arrays, cut to the records made
     for name, size in (("node", 4 * count), ("base", 4 * count), ("lanes", 4 * width * count)):
         kept[name] = dev.empty(ctx, size)
