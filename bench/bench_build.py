@@ -6,11 +6,11 @@ triangles) it measures, interleaved in the same run so that ratios share the
 machine's noise:
 
 * the LBVH build with the inputs already on the device
-  (:func:`lbvh.build.build_on_device`): every phase from OpenCL event
+  (:func:`lbvh.builders.pipeline.build_tree`): every phase from OpenCL event
   profiling, the summed device time and the wall time;
 * on the same Morton keys (computed once, outside the timed build): numpy's
   stable argsort, pyopencl's RadixSort on the same context, our
-  :func:`lbvh.sort.radix_sort` alone;
+  :func:`lbvh.device.sort.radix_sort` alone;
 * the streaming floor: one device buffer-to-buffer copy of as many bytes as
   the build must read and write at least once;
 * Embree (embreex) and warp-lang on the CPU when they are importable.
@@ -21,47 +21,43 @@ checks outside the timing: an invalid tree stops the benchmark.
 
     .venv/bin/python bench/bench_build.py [--quick] [--scenes bunny,sponza,conference]
         [--sizes 100k,1m,4m] [--kinds soup,sphere,copies] [--repeats 5] [--json out.json]
+
+The scene files, the peers' adapters (:class:`common.Embree`,
+:class:`common.Warp`) and the timing helpers are shared with the other benches
+in ``bench/common.py``.
 """
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import platform
-import statistics
 import sys
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
-# numpy's OpenBLAS threads spin for a while after any BLAS call and take cycles
-# from the device's threads (about 5% of a build profile); nothing measured here
-# uses BLAS. Set before numpy is imported.
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# bench/common.py, beside this script; imported before numpy, for it sets
+# OPENBLAS_NUM_THREADS (see there).
+from common import (DEFAULT_OUT, Embree, Warp, cpu_model, library_versions, load_peers, median,
+                    scene_file, timed)
 
 import numpy as np
 import pyopencl as cl
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
+import lbvh
+from lbvh import device as dev
+from lbvh.builders import bounds as lbvh_bounds
+from lbvh.builders.morton import KEY_DTYPE, code_bits, morton_codes
+from lbvh.builders.options import LBVHOptions
+from lbvh.builders.pipeline import build_tree
+from lbvh.device.sort import radix_sort
+from lbvh.rendering.scene import load_mesh
+from lbvh.report import PHASES
+from lbvh.tree import Mesh
+from lbvh.verification import meshes
 
-import meshes  # noqa: E402  (bench/ is not a package)
-
-import lbvh  # noqa: E402
-from lbvh import device as dev  # noqa: E402
-from lbvh import bounds as lbvh_bounds  # noqa: E402
-from lbvh.build import build_on_device  # noqa: E402
-from lbvh.morton import KEY_DTYPE, code_bits, morton_codes  # noqa: E402
-from lbvh.report import PHASES  # noqa: E402
-from lbvh.sort import radix_sort  # noqa: E402
-
-SHARED_SCENES = Path(__file__).resolve().parents[2] / "shared" / "scenes"
-SCENE_FILES = {"bunny": "stanford-bunny.obj", "sponza": "crytek_sponza.obj",
-               "conference": "conference.obj", "sibenik": "sibenik.obj",
-               "teapot": "teapot.obj", "suzanne": "suzanne.obj"}
 KEY_BITS = {"auto": None, "30": 32, "63": 64}
 # The pipeline is being tuned: newer versions store each triangle's box in the
 # bounds stage (morton and refit read it) instead of recomputing it from the mesh.
@@ -97,18 +93,8 @@ def size_label(n: int) -> str:
     return f"{n / 1e3:.3g}K" if n >= 10 ** 3 else str(n)
 
 
-def median(values: list[float]) -> float:
-    return float(statistics.median(values)) if values else float("nan")
-
-
 def mtris(n: int, seconds: float) -> float:
     return n / seconds * 1e-6 if seconds > 0 else float("nan")
-
-
-def timed(fn: Callable[[], Any]) -> tuple[float, Any]:
-    t0 = time.perf_counter()
-    out = fn()
-    return time.perf_counter() - t0, out
 
 
 @dataclass
@@ -125,19 +111,8 @@ class Samples:
 
 # -- machine -----------------------------------------------------------------------
 
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def versions() -> dict[str, str]:
-    out = {"python": platform.python_version(), "numpy": np.__version__,
-           "pyopencl": cl.VERSION_TEXT, "lbvh": lbvh.__version__}
+    out = library_versions()
     for name in ("embreex", "warp", "mako"):
         try:
             module = __import__(name)
@@ -167,13 +142,13 @@ class Case:
 
 
 def load_shared(name: str) -> Case | None:
-    path = SHARED_SCENES / SCENE_FILES.get(name, f"{name}.obj")
+    """A scene read from its file (:func:`common.scene_file`), or None if it is missing."""
+    path = scene_file(name)
     if not path.is_file():
         print(f"[skip] scene {name}: {path} not found", file=sys.stderr)
         return None
-    from lbvh.scene import load_scene
-    scene = load_scene(path)
-    return Case(name, scene.vertices, scene.faces)
+    v, f = load_mesh(path)
+    return Case(name, v, f)
 
 
 def generated_cases(kinds: list[str], sizes: list[int], bunny: Case | None,
@@ -204,7 +179,10 @@ def generated_cases(kinds: list[str], sizes: list[int], bunny: Case | None,
 def run_build(ctx: dev.Context, case: Case, vbuf: cl.Buffer, fbuf: cl.Buffer,
               key_bits: int | None, samples: Samples | None) -> lbvh.BVH:
     ctx.queue.finish()
-    bvh = build_on_device(ctx, case.vertices, case.faces, vbuf, fbuf, key_bits)
+    options = LBVHOptions(key_bits={None: "auto", 32: 30, 64: 63}[key_bits])
+    mesh = Mesh(case.vertices, case.faces, vbuf, fbuf)
+    with ctx.lock:
+        bvh = lbvh.BVH(mesh, build_tree(ctx, mesh, options))
     if samples is not None:
         rep = bvh.build_report
         for phase in PHASES:
@@ -227,7 +205,7 @@ def tree_figures(bvh: lbvh.BVH) -> dict:
            "peak_device_bytes": rep.peak_device_bytes,
            "bytes_per_triangle": rep.bytes_per_triangle, "sah_cost": None}
     try:
-        from lbvh.quality import sah_cost
+        from lbvh.verification.quality import sah_cost
         out["sah_cost"] = float(sah_cost(bvh))
     except ImportError:
         pass
@@ -257,7 +235,7 @@ def time_numpy_argsort(keys: np.ndarray, samples: Samples | None) -> np.ndarray:
 
 def time_our_sort(ctx: dev.Context, keys: np.ndarray, key_bits: int,
                   samples: Samples | None) -> np.ndarray:
-    """Sort fresh copies of the keys with lbvh.sort.radix_sort; returns the value order.
+    """Sort fresh copies of the keys with lbvh.device.sort.radix_sort; returns the value order.
 
     The sort runs twice and the second run is timed: the first maps the pages of
     the buffers the sort allocates, which then go to the pool for the second, as
@@ -395,61 +373,29 @@ def phase_traffic(num_vertices: int, n: int, key_bytes: int, sort_passes: int) -
 
 # -- peers ----------------------------------------------------------------------------------
 
-class Embree:
-    """Embree 4 through embreex: the build is the scene commit, run lazily by the first query."""
-
-    def __init__(self) -> None:
-        try:
-            from embreex import mesh_construction, rtcore_scene
-            self.rtcs, self.mc = rtcore_scene, mesh_construction
-            self.error = None
-        except ImportError:
-            self.error = "not installed"
-
-    def run(self, vertices: np.ndarray, faces_i32: np.ndarray, samples: Samples | None) -> None:
-        origin = np.zeros((1, 3), np.float32)
-        direction = np.array([[0.0, 0.0, 1.0]], np.float32)
-        t0 = time.perf_counter()
-        scene = self.rtcs.EmbreeScene()
-        mesh = self.mc.TriangleMesh(scene, vertices, faces_i32)
-        t1 = time.perf_counter()
-        scene.run(origin, direction)      # commits: builds the BVH, then traces one ray
-        t2 = time.perf_counter()
-        if samples is not None:
-            samples.add("embree_setup", t1 - t0)
-            samples.add("embree_build", t2 - t1)
-        del mesh, scene
+def time_embree(embree: Embree, case: Case, samples: Samples | None) -> None:
+    """Embree's build of the mesh (:meth:`common.Embree.build`: setup, then the commit)."""
+    setup, build, built = embree.build(case.vertices, case.faces)
+    del built
+    if samples is not None:
+        samples.add("embree_setup", setup)
+        samples.add("embree_build", build)
 
 
-class Warp:
-    """warp-lang's wp.Mesh on the "cpu" device, one figure per BVH constructor."""
+class WarpBuilds:
+    """warp's ``wp.Mesh`` with every constructor, one figure each; a constructor that
+    fails once (its error in ``failed``) is not run again."""
 
-    CONSTRUCTORS = ("sah", "median", "cubql")
-
-    def __init__(self) -> None:
-        try:
-            import warp as wp
-            with contextlib.redirect_stdout(sys.stderr):   # keep stdout pure Markdown
-                wp.init()
-            self.wp = wp
-            self.error = None
-        except ImportError:
-            self.error = "not installed"
+    def __init__(self, warp: Warp) -> None:
+        self.warp = warp
         self.failed: dict[str, str] = {}
 
-    def arrays(self, vertices: np.ndarray, faces: np.ndarray):
-        wp = self.wp
-        return (wp.array(vertices, dtype=wp.vec3, device="cpu"),
-                wp.array(faces.astype(np.int32).ravel(), dtype=wp.int32, device="cpu"))
-
-    def run(self, points, indices, samples: Samples | None) -> None:
-        for cons in self.CONSTRUCTORS:
+    def run(self, points: Any, indices: Any, samples: Samples | None) -> None:
+        for cons in self.warp.CONSTRUCTORS:
             if cons in self.failed:
                 continue
             try:
-                with warnings.catch_warnings():
-                    warnings.simplefilter("error")   # a silent fallback to another builder is a failure
-                    seconds, mesh = timed(lambda: self.wp.Mesh(points, indices, bvh_constructor=cons))
+                seconds, mesh = timed(lambda: self.warp.mesh(points, indices, cons))
             except Exception as exc:  # noqa: BLE001  (report any peer failure, keep benchmarking)
                 self.failed[cons] = f"{type(exc).__name__}: {exc}"
                 continue
@@ -462,7 +408,7 @@ class Warp:
 
 def bench_case(ctx: dev.Context, case: Case, key_bits: int | None, repeats: int,
                peer_repeats: int, pyocl: PyopenclSort, embree: Embree | None,
-               warp: Warp | None, peer_warmup: bool = True) -> dict:
+               warp: WarpBuilds | None, peer_warmup: bool = True) -> dict:
     """All measurements of one mesh, interleaved round by round after one warm-up round.
 
     The peers (slow on big meshes) need a warm-up only once per process
@@ -476,8 +422,7 @@ def bench_case(ctx: dev.Context, case: Case, key_bits: int | None, repeats: int,
     del bvh
     keys = device_morton_keys(ctx, vbuf, fbuf, n, width)
     floor = CopyFloor(ctx, floor_bytes(nv, n))
-    faces_i32 = case.faces.astype(np.int32) if embree else None
-    warp_arrays = warp.arrays(case.vertices, case.faces) if warp else None
+    warp_arrays = warp.warp.arrays(case.vertices, case.faces) if warp else None
 
     samples = Samples()
     checks = {}
@@ -495,13 +440,13 @@ def bench_case(ctx: dev.Context, case: Case, key_bits: int | None, repeats: int,
                 checks["pyopencl_keys_match"] = bool(np.array_equal(theirs, keys[order]))
         if (round_ == 0 and peer_warmup) or 0 < round_ <= peer_repeats:
             if embree:
-                embree.run(case.vertices, faces_i32, s)
+                time_embree(embree, case, s)
             if warp:
                 warp.run(*warp_arrays, s)
     floor.release()
     del vbuf, fbuf
     if not checks["our_sort_matches_numpy_stable"]:
-        raise SystemExit(f"{case.name}: lbvh.sort.radix_sort differs from numpy's stable argsort")
+        raise SystemExit(f"{case.name}: lbvh.device.sort.radix_sort differs from numpy's stable argsort")
     return summarise(case, samples, quality, checks, width)
 
 
@@ -685,7 +630,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--no-peers", action="store_true", help="skip Embree and warp")
     p.add_argument("--key-bits", choices=sorted(KEY_BITS), default="auto")
     p.add_argument("--device", default=None, help="OpenCL device name (default: PoCL's CPU)")
-    p.add_argument("--json", default=str(HERE / "out" / "bench_build.json"),
+    p.add_argument("--json", default=str(DEFAULT_OUT / "bench_build.json"),
                    help="where to write every figure (default bench/out/bench_build.json)")
     args = p.parse_args(argv)
     quick = args.quick
@@ -709,14 +654,12 @@ def main(argv: list[str] | None = None) -> int:
     ctx = dev.get_context(args.device)
     key_bits = KEY_BITS[args.key_bits]
     pyocl = PyopenclSort(ctx)
-    embree = warp = None
-    if not args.no_peers:
-        embree, warp = Embree(), Warp()
-        for peer, name in ((embree, "embreex"), (warp, "warp-lang")):
-            if peer.error:
-                print(f"[peer] {name}: {peer.error}", file=sys.stderr)
-        embree = None if embree.error else embree
-        warp = None if warp.error else warp
+    peers, peer_status = load_peers(not args.no_peers)
+    for family, status in peer_status.items():
+        if family not in peers and not args.no_peers:
+            print(f"[peer] {family}: {status}", file=sys.stderr)
+    embree = peers.get("embree")
+    warp = WarpBuilds(peers["warp"]) if "warp" in peers else None
     if pyocl.error:
         print(f"[peer] pyopencl RadixSort: {pyocl.error}", file=sys.stderr)
 

@@ -14,16 +14,18 @@ rounds that run every builder once, so that the machine's noise hits all alike):
   triangles is built once);
 * the render: closest-hit traversal of one fixed set of primary rays (one per
   pixel of the scene's camera from ``bench/cameras.json``), median wall time
-  of ``lbvh.traverse.intersect`` (ray packing, transfers and read-back
+  of ``lbvh.queries.traverse.intersect`` (ray packing, transfers and read-back
   included, counters off), hence rays per second;
-* the tree: SAH cost normalised by the root area (``lbvh.quality.sah_cost``,
+* the tree: SAH cost normalised by the root area (``lbvh.verification.quality.sah_cost``,
   C_node = C_tri = 1) and its ratio to the serial SAH tree's; depth, nodes,
   leaves, memory; the traversal counters of the same rays: mean nodes visited
   and triangles tested per ray, and their sum relative to the SAH tree's;
 * hit agreement with the reference (the SAH tree's hits, same kernel): the
   fraction of rays with the same hit or miss, the same primitive and ``t``
-  within :func:`t_bound`; ``with ties`` also accepts another primitive at
-  ``t`` within the bound (two triangles meeting the ray at one point);
+  within the float32 bound :func:`lbvh.verification.error_bound.t_bound`,
+  ``|cos a|`` floored at :data:`common.AGREEMENT_COS_FLOOR` (:func:`common.agreement`);
+  ``with ties`` also accepts another primitive at ``t`` within the bound (two
+  triangles meeting the ray at one point);
 * break-even ray counts: ``build_a + n cost_a = build_b + n cost_b``, against
   the fastest build of the scene and against the SAH reference, and the lower
   envelope ("which builder for how many rays") over all builders.
@@ -40,66 +42,38 @@ Outputs in ``--out``: ``bench_builders.json`` (every figure, the machine and
 the OpenCL device), ``bench_builders.md`` (also printed), ``bench_builders.png``
 (speed against error, needs matplotlib) and ``views/<scene>.png`` (what the
 camera sees). Progress goes to stderr.
+
+The scenes and cameras, the peers' adapters, the agreement and the timing
+helpers are shared with the other benches in ``bench/common.py``; the SAH
+cost constants come from :mod:`lbvh.builders.cost`.
 """
 from __future__ import annotations
 
 import argparse
-import contextlib
-import datetime
-import json
 import math
-import os
-import platform
 import statistics
-import sys
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any
 
-# numpy's OpenBLAS threads spin for a while after any BLAS call and take cycles
-# from the device's threads (about 5% of a build profile); nothing measured here
-# uses BLAS. Set before numpy is imported.
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# bench/common.py, beside this script; imported before numpy, for it sets
+# OPENBLAS_NUM_THREADS (see there).
+from common import (AGREEMENT_COS_FLOOR, AGREEMENT_T_BOUND, Progress, Scene, Variant,
+                    add_run_options, add_scene_options, agreement, command_line, cores_used,
+                    header_lines, interleaved_rounds, load_bench_scene, load_cameras, load_peers,
+                    loaded_scenes, median, report_start, resolve_scenes, save_view, write_report)
 
 import numpy as np
-import pyopencl as cl
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
+import lbvh
+from lbvh import device as dev
+from lbvh.builders.cost import C_NODE, C_TRI, MAX_LEAF_SIZE
+from lbvh.queries.traverse import intersect
+from lbvh.verification import meshes
+from lbvh.verification.error_bound import t_bound
+from lbvh.verification.quality import tree_quality
 
-import meshes  # noqa: E402  (bench/ is not a package)
-from bench_build import cpu_model  # noqa: E402
-
-import lbvh  # noqa: E402
-from lbvh import device as dev  # noqa: E402
-from lbvh.camera import Camera  # noqa: E402
-from lbvh.image import write_image  # noqa: E402
-from lbvh.quality import tree_quality  # noqa: E402
-from lbvh.render import display, shade_primary  # noqa: E402
-from lbvh.scene import load_mesh  # noqa: E402
-from lbvh.traverse import intersect  # noqa: E402
-
-REPO = HERE.parent
-SHIPPED_SCENES = REPO / "scenes"
-SHARED_SCENES = REPO.parent / "shared" / "scenes"
-CAMERAS = HERE / "cameras.json"
-
-#: Scenes read from files: name -> (folder, file).
-FILE_SCENES = {
-    "teapot": (SHIPPED_SCENES, "teapot.obj"),
-    "suzanne": (SHIPPED_SCENES, "suzanne.obj"),
-    "bunny": (SHARED_SCENES, "stanford-bunny.obj"),
-    "sponza": (SHARED_SCENES, "crytek_sponza.obj"),
-    "sibenik": (SHARED_SCENES, "sibenik.obj"),
-    "conference": (SHARED_SCENES, "conference.obj"),
-}
-#: Generated scenes (bench/meshes.py), at least 1M triangles each.
-GENERATED_SCENES: dict[str, Callable[[], tuple[np.ndarray, np.ndarray]]] = {
-    "soup-1m": lambda: meshes.soup(1_000_000, seed=0),
-    "terrain-1m": lambda: meshes.terrain(1_002_528, seed=0),   # 2 * 708^2 triangles
-}
 FULL_SCENES = ("bunny", "sponza", "sibenik", "conference", "soup-1m", "terrain-1m")
 QUICK_SCENES = ("teapot",)
 
@@ -108,36 +82,12 @@ QUICK_RAYS = (128, 96)
 #: Ray count of the "build + render" axis of the chart: ten 1-megapixel frames.
 CHART_RAYS = 10_000_000
 
-C_NODE = 1.0
-C_TRI = 1.0
-MAX_LEAF_SIZE = 8
 REFERENCE = "sah"
 #: Cost constants of the collapse and of the SAH reference (the same for both).
 SAH_OPTIONS = {"c_node": C_NODE, "c_tri": C_TRI, "max_leaf_size": MAX_LEAF_SIZE}
 
-#: t bound of the agreement test (as in tests/test_traverse.py): with u = 2^-24,
-#: |t - t_ref| <= T_BOUND_ULPS u (t_ref + s) / max(|cos a|, COS_FLOOR), where s is
-#: the size of the coordinates the float32 test subtracts (scene extent plus the
-#: largest origin component, over |d|) and a the angle between ray and normal.
-T_BOUND_ULPS = 16
-COS_FLOOR = 1e-3
-UNIT_ROUNDOFF = 2.0 ** -24
-
 
 # -- builders ---------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Variant:
-    """One builder configuration: ``family`` is ``lbvh`` or ``sah`` (our trees,
-    traced by our kernel), ``embree`` or ``warp`` (peers)."""
-    name: str
-    family: str
-    options: dict = field(default_factory=dict, hash=False)
-
-    @property
-    def ours(self) -> bool:
-        return self.family in ("lbvh", "sah")
-
 
 #: Rounds of treelet restructuring in the restructured variants.
 TREELET_ROUNDS = 2
@@ -164,213 +114,20 @@ def build_tree(variant: Variant, vertices: np.ndarray, faces: np.ndarray, ctx: d
     return lbvh.build(vertices, faces, device=ctx, **variant.options)
 
 
-class Embree:
-    """Embree 4 through embreex: the build is the scene commit, run by the first query."""
-
-    def __init__(self) -> None:
-        from embreex import mesh_construction, rtcore_scene
-        self.rtcs, self.mc = rtcore_scene, mesh_construction
-        import embreex
-        self.version = getattr(embreex, "__version__", "installed")
-
-    def variants(self) -> list[Variant]:
-        return [Variant("embree", "embree")]
-
-    def build(self, variant: Variant, vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float, Any]:
-        """``(setup seconds, build seconds, scene)``."""
-        faces_i32 = faces.astype(np.int32)
-        t0 = time.perf_counter()
-        scene = self.rtcs.EmbreeScene()
-        mesh = self.mc.TriangleMesh(scene, vertices, faces_i32)
-        t1 = time.perf_counter()
-        scene.run(np.zeros((1, 3), np.float32), np.float32([[0.0, 0.0, 1.0]]))   # commit = build
-        t2 = time.perf_counter()
-        return t1 - t0, t2 - t1, (scene, mesh)
-
-    def trace(self, built: Any, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Closest hits ``(t float32, prim int32)``, ``inf`` / ``-1`` on a miss."""
-        out = built[0].run(origins, directions, output=1)
-        prim = out["primID"].astype(np.int32)
-        t = np.where(prim >= 0, out["tfar"], np.inf).astype(np.float32)
-        return t, prim
-
-
-class Warp:
-    """warp-lang's ``wp.Mesh`` on the CPU, one variant per BVH constructor."""
-
-    CONSTRUCTORS = ("sah", "median", "cubql")
-
-    def __init__(self) -> None:
-        import warp as wp
-        wp.config.quiet = True
-        with contextlib.redirect_stdout(sys.stderr):   # keep stdout pure Markdown
-            wp.init()
-        self.wp = wp
-        self.version = wp.__version__
-        self._kernel = None
-
-    def variants(self) -> list[Variant]:
-        return [Variant(f"warp-{c}", "warp", {"bvh_constructor": c}) for c in self.CONSTRUCTORS]
-
-    def build(self, variant: Variant, vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float, Any]:
-        wp = self.wp
-        t0 = time.perf_counter()
-        points = wp.array(vertices, dtype=wp.vec3, device="cpu")
-        indices = wp.array(faces.astype(np.int32).ravel(), dtype=wp.int32, device="cpu")
-        t1 = time.perf_counter()
-        with warnings.catch_warnings():
-            warnings.simplefilter("error")   # a silent fallback to another constructor is a failure
-            mesh = wp.Mesh(points, indices, bvh_constructor=variant.options["bvh_constructor"])
-        t2 = time.perf_counter()
-        return t1 - t0, t2 - t1, mesh
-
-    def kernel(self):
-        """The ray kernel, compiled on first use (warp caches it on disk)."""
-        if self._kernel is None:
-            wp = self.wp
-
-            @wp.kernel
-            def closest_hit(mesh: wp.uint64, origins: wp.array(dtype=wp.vec3),
-                            directions: wp.array(dtype=wp.vec3), t_out: wp.array(dtype=float),
-                            prim_out: wp.array(dtype=int)):
-                i = wp.tid()
-                q = wp.mesh_query_ray(mesh, origins[i], directions[i], 1.0e30)
-                if q.result:
-                    t_out[i] = q.t
-                    prim_out[i] = q.face
-                else:
-                    t_out[i] = wp.inf
-                    prim_out[i] = -1
-
-            self._kernel = closest_hit
-        return self._kernel
-
-    def trace(self, mesh: Any, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        wp = self.wp
-        n = len(origins)
-        t = wp.empty(n, dtype=float, device="cpu")
-        prim = wp.empty(n, dtype=int, device="cpu")
-        with contextlib.redirect_stdout(sys.stderr):   # warp reports module loads on stdout
-            wp.launch(self.kernel(), dim=n, device="cpu",
-                      inputs=[mesh.id, wp.array(origins, dtype=wp.vec3, device="cpu"),
-                              wp.array(directions, dtype=wp.vec3, device="cpu"), t, prim])
-            wp.synchronize()
-        return t.numpy().astype(np.float32), prim.numpy().astype(np.int32)
-
-
-def load_peers(enabled: bool) -> tuple[dict[str, Any], dict[str, str]]:
-    """Importable peers ``{family: peer}`` and a status line for each."""
-    peers, status = {}, {}
-    for family, cls in (("embree", Embree), ("warp", Warp)):
-        if not enabled:
-            status[family] = "disabled (--no-peers)"
-            continue
-        try:
-            peers[family] = cls()
-            status[family] = f"{family} {peers[family].version}"
-        except ImportError as exc:
-            status[family] = f"not installed ({exc})"
-    return peers, status
-
-
-# -- scenes and rays ----------------------------------------------------------------
-
-@dataclass
-class Scene:
-    name: str
-    source: str
-    vertices: np.ndarray
-    faces: np.ndarray
-    camera: Camera
-
-
-def load_cameras(path: Path = CAMERAS) -> dict[str, dict]:
-    data = json.loads(Path(path).read_text())
-    return {k: v for k, v in data.items() if not k.startswith("_")}
-
-
-def known_scenes() -> list[str]:
-    return [*FILE_SCENES, *GENERATED_SCENES]
-
-
-def load_bench_scene(name: str, size: tuple[int, int], cameras: dict[str, dict],
-                     shared: Path = SHARED_SCENES) -> Scene | str:
-    """The scene and its camera at ``size = (width, height)``, or why it is skipped."""
-    if name not in cameras:
-        return f"no camera for {name!r} in {CAMERAS.name}"
-    camera = Camera.from_dict(cameras[name], size=size)
-    if name in GENERATED_SCENES:
-        v, f = GENERATED_SCENES[name]()
-        return Scene(name, "bench/meshes.py", v, f, camera)
-    folder, filename = FILE_SCENES[name]
-    if folder == SHARED_SCENES:
-        folder = shared
-    path = folder / filename
-    if not path.is_file():
-        return f"{path} not found"
-    v, f = load_mesh(path)
-    return Scene(name, str(path), v, f, camera)
-
-
-# -- hits ------------------------------------------------------------------------
-
-def t_bound(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarray, directions: np.ndarray,
-            t_ref: np.ndarray, prim_ref: np.ndarray) -> np.ndarray:
-    """Per-ray bound ``float64 (N,)`` on ``|t - t_ref|`` (formula at :data:`T_BOUND_ULPS`);
-    ``prim_ref`` is the reference triangle (``-1`` on a miss: the bound is then unused)."""
-    d = directions.astype(np.float64)
-    dn = np.linalg.norm(d, axis=1)
-    extent = float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
-    s = (extent + np.abs(origins).max(axis=1)) / dn
-    tri = vertices[faces[np.maximum(prim_ref, 0)]].astype(np.float64)
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    nn = np.linalg.norm(normal, axis=1)
-    cos = np.abs((normal * d).sum(axis=1)) / np.maximum(nn * dn, 1e-300)
-    t = np.where(np.isfinite(t_ref), t_ref, 0.0)
-    return T_BOUND_ULPS * UNIT_ROUNDOFF * (t + s) / np.maximum(cos, COS_FLOOR)
-
-
-def agreement(t: np.ndarray, prim: np.ndarray, t_ref: np.ndarray, prim_ref: np.ndarray,
-              bound: np.ndarray) -> dict:
-    """How far a ray query's closest hits agree with the reference's (module docstring)."""
-    hit, hit_ref = prim >= 0, prim_ref >= 0
-    same_status = hit == hit_ref
-    both = hit & hit_ref
-    err = np.zeros(len(t))
-    err[both] = np.abs(t[both].astype(np.float64) - t_ref[both])
-    t_ok = ~both | (err <= bound)
-    same_prim = prim == prim_ref
-    strict = same_status & t_ok & (~both | same_prim)
-    with_ties = same_status & t_ok
-    n = max(len(t), 1)
-    worst = float((err[both] / bound[both]).max()) if both.any() else 0.0
-    return {"fraction": float(strict.sum() / n), "fraction_with_ties": float(with_ties.sum() / n),
-            "hit_miss_differ": int((~same_status).sum()),
-            "ties": int((both & ~same_prim & t_ok).sum()),
-            "t_out_of_bound": int((both & ~t_ok).sum()), "max_t_error_over_bound": worst}
-
-
-def save_view(path: Path, scene: Scene, directions: np.ndarray, t: np.ndarray, prim: np.ndarray) -> None:
-    """What the camera sees (headlight shading of the reference hits), for choosing cameras."""
-    image = shade_primary("diffuse", t, prim, directions, scene.vertices, scene.faces,
-                          scene.camera.width, scene.camera.height)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_image(path, display("diffuse", image))
-
-
 # -- measuring the builders of one scene ---------------------------------------------
 
 class Ours:
-    """Our builders behind the peers' interface: ``build`` returns ``(setup, build, tree)``
-    seconds and handle, ``trace`` the closest hits ``(t, prim)``."""
+    """Our builders behind the peers' interface (:class:`common.Embree`, :class:`common.Warp`):
+    ``build(vertices, faces, **options)`` returns ``(setup, build, tree)`` seconds and
+    handle, ``trace`` the closest hits ``(t, prim)``."""
     version = lbvh.__version__
 
     def __init__(self, ctx: dev.Context) -> None:
         self.ctx = ctx
 
-    def build(self, variant: Variant, vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float, Any]:
+    def build(self, vertices: np.ndarray, faces: np.ndarray, **options: Any) -> tuple[float, float, Any]:
         t0 = time.perf_counter()
-        bvh = build_tree(variant, vertices, faces, self.ctx)
+        bvh = lbvh.build(vertices, faces, device=self.ctx, **options)
         return 0.0, time.perf_counter() - t0, bvh
 
     def trace(self, bvh: lbvh.BVH, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -402,7 +159,8 @@ class Contestant:
     def run_build(self, scene: Scene) -> None:
         self.handle = None                       # one tree per builder alive at a time
         c0 = time.process_time()
-        setup, seconds, self.handle = self.builder.build(self.variant, scene.vertices, scene.faces)
+        setup, seconds, self.handle = self.builder.build(scene.vertices, scene.faces,
+                                                       **self.variant.options)
         self.build_cpu.append(time.process_time() - c0)
         self.setup.append(setup)
         self.build.append(seconds)
@@ -412,30 +170,6 @@ class Contestant:
         self.t, self.prim = self.builder.trace(self.handle, origins, directions)
         self.render.append(time.perf_counter() - t0)
         self.render_cpu.append(time.process_time() - c0)
-
-
-def median(values: list[float]) -> float:
-    return float(statistics.median(values))
-
-
-def cores_used(cpu: list[float], wall: list[float]) -> float:
-    """Process CPU seconds over wall seconds: about the number of busy cores."""
-    return float(sum(cpu) / sum(wall)) if sum(wall) > 0 else 0.0
-
-
-def interleaved_rounds(contestants: list[Contestant], repeats: int, budget: float,
-                       spent: Callable[[Contestant], float], run: Callable[[Contestant], None],
-                       progress: "Progress", what: str) -> None:
-    """``repeats`` rounds, each running every contestant once, so that the machine's
-    noise hits all of them alike; a contestant that has spent ``budget`` seconds sits
-    out the later rounds (it always runs once)."""
-    for r in range(repeats):
-        for c in contestants:
-            if r and spent(c) >= budget:
-                continue
-            progress.note(f"{c.variant.name} {what} {r + 1}/{repeats}")
-            run(c)
-        progress.advance()
 
 
 ROW_FIELDS = ("scene", "builder", "family", "options", "triangles", "rays", "build_seconds",
@@ -555,7 +289,8 @@ def compare_within_scene(scene: Scene, contestants: list[Contestant], rows: list
     scene's summary (fastest build, envelopes)."""
     i_ref = [r["builder"] for r in rows].index(REFERENCE)
     ref, ref_row = contestants[i_ref], rows[i_ref]
-    bound = t_bound(scene.vertices, scene.faces, origins, directions, ref.t, ref.prim)
+    bound = t_bound(scene.vertices, scene.faces, origins, directions, ref.t, ref.prim,
+                    cos_floor=AGREEMENT_COS_FLOOR)
     ours = [r for r in rows if r["family"] in ("lbvh", "sah")]
     fastest = min(ours, key=lambda r: r["build_seconds"])
     for c, row in zip(contestants, rows):
@@ -569,51 +304,6 @@ def compare_within_scene(scene: Scene, contestants: list[Contestant], rows: list
             "best_by_rays": lower_envelope(rows)}
 
 
-# -- progress ----------------------------------------------------------------------
-
-class Progress:
-    """A one-line text progress bar on stderr (a line per step when not a terminal)."""
-
-    def __init__(self, total: int, stream=sys.stderr) -> None:
-        self.total, self.done, self.stream = max(total, 1), 0, stream
-        self.start = time.perf_counter()
-        self.label = ""
-        self.tty = stream.isatty()
-
-    def begin(self, label: str) -> None:
-        self.label = label
-        self.note("")
-
-    def note(self, step: str) -> None:
-        width = 24
-        filled = int(width * self.done / self.total)
-        bar = "#" * filled + "-" * (width - filled)
-        text = (f"[{bar}] {self.done}/{self.total} {time.perf_counter() - self.start:6.0f} s  "
-                f"{self.label} {step}")
-        if self.tty:
-            self.stream.write("\r" + text.ljust(100)[:100])
-        else:
-            self.stream.write(text + "\n")
-        self.stream.flush()
-
-    def advance(self) -> None:
-        self.done += 1
-
-    def close(self) -> None:
-        self.note("done")
-        if self.tty:
-            self.stream.write("\n")
-
-
-# -- machine ---------------------------------------------------------------------
-
-def machine_info(ctx: dev.Context, peer_status: dict[str, str]) -> dict:
-    return {"cpu": cpu_model(), "cores": os.cpu_count(), "platform": platform.platform(),
-            "opencl_device": ctx.name, "device_compute_units": ctx.compute_units,
-            "python": platform.python_version(), "numpy": np.__version__,
-            "pyopencl": cl.VERSION_TEXT, "lbvh": lbvh.__version__, "peers": peer_status}
-
-
 # -- one scene, all builders ----------------------------------------------------------
 
 def warm_up(ctx: dev.Context, variants: list[Variant]) -> None:
@@ -623,22 +313,6 @@ def warm_up(ctx: dev.Context, variants: list[Variant]) -> None:
         if variant.family == "lbvh":
             bvh = build_tree(variant, v, f, ctx)
             intersect(bvh, np.zeros((1, 3), np.float32), np.float32([[0.0, 0.0, 1.0]]))
-
-
-def loaded_scenes(names: list[str], load: Callable[[str], "Scene | str"], progress: "Progress",
-                  steps: int, skipped: list[dict]) -> Iterator[Scene]:
-    """Each scene that ``load(name)`` returns, in order, with progress. A scene it
-    cannot load (it returns the reason, a string) goes to ``skipped``, and its
-    ``steps`` count as done."""
-    for name in names:
-        progress.begin(f"{name}:")
-        progress.note("loading")
-        scene = load(name)
-        if isinstance(scene, str):
-            skipped.append({"scene": name, "reason": scene})
-            progress.done += steps
-            continue
-        yield scene
 
 
 def steps_per_scene(repeats: int) -> int:
@@ -737,10 +411,7 @@ def markdown(report: dict) -> str:
     spread = render_spread(report["rows"])
     lines = [
         "# Builders: speed against error", "",
-        f"Command: `{report['command']}`  ",
-        f"Run time: {report['duration_seconds']:.0f} s on {m['cpu']}, {m['cores']} cores; "
-        f"OpenCL device: {m['opencl_device']}.  ",
-        f"Peers: {', '.join(m['peers'].values())}.  ",
+        *header_lines(report),
         f"CPU use of this process (CPU seconds over wall seconds): builds "
         f"{report['cpu_use']['build']:.2f}, renders {report['cpu_use']['render']:.2f} of "
         f"{m['cores']} cores (less than the builder can use means other load on the machine).  ",
@@ -792,7 +463,7 @@ def envelope_text(segments: list[dict]) -> str:
 
 
 COLUMN_NOTES = """Columns: `build ms` host arrays to a tree on the device (peers: their own build,
-Embree's scene commit; `(1x)`: built once, the budget cut the repeats); `render ms` closest hits of the primary rays (`lbvh.traverse.intersect`,
+Embree's scene commit; `(1x)`: built once, the budget cut the repeats); `render ms` closest hits of the primary rays (`lbvh.queries.traverse.intersect`,
 transfers included; peers: their own traversal); `SAH / ref`, `trav / ref`: SAH cost and measured
 nodes + triangles per ray over the reference's; `agree`: fraction of rays with the reference's
 hit or miss, primitive and t (within 16 u (t + s) / max(|cos|, 1e-3)); `agree (ties)` also
@@ -876,57 +547,6 @@ def draw_panel(ax: Any, agg: dict, xkey: str, ykey: str) -> None:
 
 # -- main ----------------------------------------------------------------------------
 
-def parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(x) for x in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--rays: {text!r}, expected WIDTHxHEIGHT") from None
-    if w < 1 or h < 1:
-        raise argparse.ArgumentTypeError(f"--rays: {text!r}, both sides must be positive")
-    return w, h
-
-
-def add_scene_options(p: argparse.ArgumentParser, quick_scenes: Sequence[str],
-                      full_scenes: Sequence[str], quick_rays: tuple[int, int],
-                      full_rays: tuple[int, int]) -> None:
-    """--quick, --scenes and --rays, shared by the bench scripts that trace camera rays."""
-    p.add_argument("--quick", action="store_true",
-                   help=f"CI mode: {', '.join(quick_scenes)} at {quick_rays[0]}x{quick_rays[1]} rays")
-    p.add_argument("--scenes", nargs="+", metavar="NAME",
-                   help=f"scenes (comma or space separated) from: {', '.join(known_scenes())}; "
-                        f"default {','.join(full_scenes)}")
-    p.add_argument("--rays", type=parse_size, help="primary rays WIDTHxHEIGHT per scene "
-                   f"(default {full_rays[0]}x{full_rays[1]}, quick {quick_rays[0]}x{quick_rays[1]})")
-
-
-def add_run_options(p: argparse.ArgumentParser) -> None:
-    """--no-peers, --device, --shared and --out, shared by the bench scripts."""
-    p.add_argument("--no-peers", action="store_true", help="skip Embree and warp")
-    p.add_argument("--device", default=None, help="OpenCL device (default: $LBVH_DEVICE or PoCL)")
-    p.add_argument("--shared", type=Path, default=SHARED_SCENES, help="folder of the shared scenes")
-    p.add_argument("--out", type=Path, default=HERE / "out", help="output folder (default bench/out)")
-
-
-def resolve_scenes(p: argparse.ArgumentParser, args: argparse.Namespace,
-                   quick_scenes: Sequence[str], full_scenes: Sequence[str],
-                   quick_rays: tuple[int, int], full_rays: tuple[int, int]) -> None:
-    """Set ``args.scene_names`` and ``args.size`` from --scenes, --rays and --quick."""
-    names = [n for item in (args.scenes or []) for n in item.split(",") if n]
-    unknown = [n for n in names if n not in known_scenes()]
-    if unknown:
-        p.error(f"--scenes: unknown scene {unknown[0]!r}; known: {', '.join(known_scenes())}")
-    args.scene_names = names or list(quick_scenes if args.quick else full_scenes)
-    args.size = args.rays or (quick_rays if args.quick else full_rays)
-
-
-def write_report(report: dict, text: str, paths: dict[str, Path], out: Path) -> None:
-    """The Markdown ``text`` and the JSON ``report`` to ``paths``, the text to stdout."""
-    paths["markdown"].write_text(text)
-    paths["json"].write_text(json.dumps(report, indent=1, allow_nan=False) + "\n")
-    print(text)
-    print(f"[bench] written to {out}", file=sys.stderr)
-
-
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -949,8 +569,7 @@ def main(argv: list[str] | None = None) -> dict:
     """Run the bench; returns the report (also written as JSON, Markdown and PNG)."""
     args = parse_args(argv)
     started = time.perf_counter()
-    command = " ".join([".venv/bin/python bench/bench_builders.py",
-                        *(sys.argv[1:] if argv is None else argv)])
+    command = command_line("bench_builders.py", argv)
     ctx = dev.get_context(args.device)
     peers, peer_status = load_peers(not args.no_peers)
     builders = {"lbvh": Ours(ctx), "sah": Ours(ctx), **peers}
@@ -973,15 +592,13 @@ def main(argv: list[str] | None = None) -> dict:
         rows += scene_rows
     progress.close()
     report = {
-        "command": command,
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "machine": machine_info(ctx, peer_status),
+        **report_start(command, ctx, peer_status),
         "settings": {"scenes": args.scene_names, "width": args.size[0], "height": args.size[1],
                      "repeats": args.repeats, "build_budget": args.build_budget,
                      "chart_rays": args.chart_rays, "quick": args.quick,
                      "c_node": C_NODE, "c_tri": C_TRI, "max_leaf_size": MAX_LEAF_SIZE,
                      "reference": REFERENCE,
-                     "t_bound": f"{T_BOUND_ULPS} * 2^-24 * (t_ref + s) / max(|cos a|, {COS_FLOOR})"},
+                     "t_bound": AGREEMENT_T_BOUND},
         "scenes": scenes, "skipped": skipped, "rows": rows,
         "aggregate": aggregate(rows, args.chart_rays) if rows else {},
         "cpu_use": {what: geomean([r[what]["cpu_over_wall"] for r in rows if r["family"] == "lbvh"]) or 0.0

@@ -12,7 +12,7 @@ For every scene, three ray sets, traced by every tracer:
 * ``any``: the same rays, any hit (occlusion), ``tmax = inf``;
 * ``ao``: ambient occlusion rays, ``--ao-samples`` cosine-weighted rays per
   pixel whose primary ray hits, made once (outside any timing) from the lbvh
-  tree's primary hits by :func:`lbvh.render.ambient_occlusion` itself (the
+  tree's primary hits by :func:`lbvh.rendering.render.ambient_occlusion` itself (the
   offsets, reach and sample pattern of ``lbvh render --mode ao``), any hit
   with ``tmax`` = the AO reach (``AO_DISTANCE`` times the scene diagonal).
 
@@ -30,7 +30,7 @@ round, so that the machine's noise hits all alike):
   and, with ``--sah``, the serial SAH
   tree on scenes up to :data:`SAH_MAX_TRIANGLES` triangles;
 * ours ``(kernel only)``: the traversal kernel's device time from OpenCL event
-  profiling (:func:`lbvh.traverse.trace_buffers` on rays already on the
+  profiling (:func:`lbvh.queries.traverse.trace_buffers` on rays already on the
   device), same trees: the API rows minus the host work;
 * ``embree-1t``: embreex (Embree 4) ``scene.run`` on one thread (closest hit
   ``output=1``, any hit ``query='OCCLUDED'`` with ``dists = tmax``);
@@ -44,54 +44,50 @@ round, so that the machine's noise hits all alike):
 Error figures beside every speed: the spread of the timing samples
 ((max - min) / median) and the agreement with the reference tracer
 (``embree-1t``; ``lbvh`` when Embree is not installed): for closest hits
-:func:`bench_builders.agreement` (hit or miss, primitive, ``t`` within
-:func:`bench_builders.t_bound`; ``with ties`` accepts another primitive at the
-same ``t``), for any hits the fraction with the same hit or miss. Rays on which
+:func:`common.agreement` (hit or miss, primitive, ``t`` within the float32
+bound :func:`lbvh.verification.error_bound.t_bound` with ``|cos a|`` floored at
+:data:`common.AGREEMENT_COS_FLOOR`, as in the builders bench; ``with ties``
+accepts another primitive at the same ``t``), for any hits the fraction with the same hit or miss. Rays on which
 a tracer and the reference disagree are judged (up to ``--judge`` of them per
-ray set) against the float64 oracle (:func:`lbvh.oracle.brute_force`) with
-:class:`lbvh.check.Judge`, which accepts any answer that float32 rounding can
+ray set) against the float64 oracle (:func:`lbvh.verification.oracle.brute_force`) with
+:class:`lbvh.verification.check.Judge`, which accepts any answer that float32 rounding can
 give (edges, ties, grazing hits): each row says how many of its disagreements
 were right and how many wrong. Our rows also count stack overflows.
 
 Outputs in ``--out``: ``bench_traverse.json`` (every sample, the machine) and
 ``bench_traverse.md`` (also printed): the table, the closest-hit ratios and
 the targets of issue 3, each MET or NOT MET. Progress goes to stderr.
+
+The scenes and cameras, the peers' adapters (:class:`common.Embree`,
+:class:`common.Warp`), the agreement and the timing helpers are shared with
+the other benches in ``bench/common.py``.
 """
 from __future__ import annotations
 
 import argparse
-import contextlib
-import datetime
-import importlib
 import os
 import statistics
 import subprocess
-import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-# numpy's OpenBLAS threads spin for a while after any BLAS call and take cycles
-# from the device's threads (about 5% of a build profile); nothing measured here
-# uses BLAS. Set before numpy is imported.
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# bench/common.py, beside this script; imported before numpy, for it sets
+# OPENBLAS_NUM_THREADS (see there).
+import common
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-
-import bench_builders as bb  # noqa: E402  (bench/ is not a package)
-
-import lbvh  # noqa: E402
-from lbvh import device as dev  # noqa: E402
-from lbvh.check import Judge, Reference  # noqa: E402
-from lbvh.hard_cases import Case  # noqa: E402
-from lbvh.oracle import brute_force  # noqa: E402
-from lbvh.render import AO_DISTANCE, ambient_occlusion, scene_diagonal  # noqa: E402
-from lbvh import traverse  # noqa: E402
+import lbvh
+from lbvh import device as dev
+from lbvh.queries import traverse
+from lbvh.rendering.render import AO_DISTANCE, ambient_occlusion, scene_diagonal
+from lbvh.verification.rules import Judge, Reference
+from lbvh.verification.error_bound import t_bound
+from lbvh.verification.hard_cases import Case
+from lbvh.verification.oracle import brute_force
 
 FULL_SCENES = ("sponza", "bunny", "terrain-1m")
 QUICK_SCENES = ("teapot",)
@@ -146,9 +142,9 @@ class RaySet:
         return RaySet(self.query, self.origins[:1], self.directions[:1], self.tmax)
 
 
-def ao_rays(bvh: lbvh.BVH, hits: lbvh.traverse.Hits, directions: np.ndarray, samples: int,
+def ao_rays(bvh: lbvh.BVH, hits: lbvh.queries.traverse.Hits, directions: np.ndarray, samples: int,
             seed: int = 0) -> RaySet:
-    """The rays :func:`lbvh.render.ambient_occlusion` casts for these primary hits,
+    """The rays :func:`lbvh.rendering.render.ambient_occlusion` casts for these primary hits,
     recorded instead of traced (its generator, not a copy of it)."""
     batches: list[tuple[np.ndarray, np.ndarray]] = []
     reach = [AO_DISTANCE * scene_diagonal(bvh.vertices)]
@@ -211,7 +207,7 @@ def kernel_only_missing() -> str | None:
 
 
 class OurKernel:
-    """The traversal kernel alone (:func:`lbvh.traverse.trace_buffers`) on rays uploaded
+    """The traversal kernel alone (:func:`lbvh.queries.traverse.trace_buffers`) on rays uploaded
     once per ray set, into output buffers allocated once: device seconds from its event."""
 
     def __init__(self, bvh: lbvh.BVH) -> None:
@@ -251,7 +247,7 @@ def chunks(count: int, parts: int) -> list[slice]:
 class EmbreeTracer:
     """embreex on ``threads`` Python threads (1: the calling thread), one shared scene."""
 
-    def __init__(self, embree: bb.Embree, built: Any, threads: int,
+    def __init__(self, embree: common.Embree, built: Any, threads: int,
                  pool: ThreadPoolExecutor | None) -> None:
         self.embree, self.built, self.threads, self.pool = embree, built, threads, pool
 
@@ -260,10 +256,7 @@ class EmbreeTracer:
         if rays.closest:
             t, prim = self.embree.trace(self.built, o, d)
             return prim, t
-        # dists is Embree's tfar per ray; a fresh array (embreex writes into it)
-        hit_geometry = self.built[0].run(o, d, dists=np.full(len(o), rays.tmax, np.float32),
-                                         query="OCCLUDED")
-        return hit_geometry >= 0, None
+        return self.embree.occluded(self.built, o, d, rays.tmax), None
 
     def trace(self, rays: RaySet) -> tuple[Answer, None]:
         if self.threads == 1:
@@ -280,69 +273,19 @@ class EmbreeTracer:
         pass
 
 
-def warp_has_builtin(wp: Any, name: str) -> bool:
-    """Whether this warp's kernels can call builtin ``name`` (builtins are not module
-    attributes; their table moved to ``warp._src`` in warp 1.10)."""
-    for module in ("warp._src.context", "warp.context"):
-        try:
-            return name in importlib.import_module(module).builtin_functions
-        except (ImportError, AttributeError):
-            continue
-    return hasattr(wp, name)
-
-
 class WarpTracer:
-    """warp-lang's CPU mesh queries: closest hit through :class:`bench_builders.Warp`,
-    any hit through ``wp.mesh_query_ray_anyhit`` (closest hit with ``max_t`` before it existed)."""
+    """warp-lang's CPU mesh queries through :class:`common.Warp`: closest hit
+    ``wp.mesh_query_ray``, any hit ``wp.mesh_query_ray_anyhit`` (closest hit with
+    ``max_t`` before it existed)."""
 
-    def __init__(self, warp: bb.Warp, mesh: Any) -> None:
+    def __init__(self, warp: common.Warp, mesh: Any) -> None:
         self.warp, self.mesh = warp, mesh
-        self.has_any_hit = warp_has_builtin(warp.wp, "mesh_query_ray_anyhit")
-        self._kernel = None
-
-    @property
-    def any_hit_note(self) -> str:
-        return ("wp.mesh_query_ray_anyhit" if self.has_any_hit else
-                "this warp has no any-hit query: closest hit wp.mesh_query_ray with max_t")
-
-    def any_hit_kernel(self):
-        """The any-hit kernel, compiled on first use (warp caches it on disk)."""
-        if self._kernel is None:
-            wp = self.warp.wp
-            if self.has_any_hit:
-                @wp.func
-                def blocked(mesh: wp.uint64, o: wp.vec3, d: wp.vec3, max_t: float) -> bool:
-                    return wp.mesh_query_ray_anyhit(mesh, o, d, max_t)
-            else:
-                @wp.func
-                def blocked(mesh: wp.uint64, o: wp.vec3, d: wp.vec3, max_t: float) -> bool:
-                    return wp.mesh_query_ray(mesh, o, d, max_t).result
-
-            @wp.kernel
-            def any_hit(mesh: wp.uint64, origins: wp.array(dtype=wp.vec3),
-                        directions: wp.array(dtype=wp.vec3), max_t: float,
-                        hit_out: wp.array(dtype=wp.int32)):
-                i = wp.tid()
-                hit_out[i] = 0
-                if blocked(mesh, origins[i], directions[i], max_t):
-                    hit_out[i] = 1
-
-            self._kernel = any_hit
-        return self._kernel
 
     def trace(self, rays: RaySet) -> tuple[Answer, None]:
         if rays.closest:
             t, prim = self.warp.trace(self.mesh, rays.origins, rays.directions)
             return Answer(prim >= 0, prim, t), None
-        wp = self.warp.wp
-        hit = wp.empty(len(rays), dtype=wp.int32, device="cpu")
-        with contextlib.redirect_stdout(sys.stderr):   # warp reports module loads on stdout
-            wp.launch(self.any_hit_kernel(), dim=len(rays), device="cpu",
-                      inputs=[self.mesh.id, wp.array(rays.origins, dtype=wp.vec3, device="cpu"),
-                              wp.array(rays.directions, dtype=wp.vec3, device="cpu"),
-                              float(rays.tmax), hit])
-            wp.synchronize()
-        return Answer(hit.numpy() != 0), None
+        return Answer(self.warp.occluded(self.mesh, rays.origins, rays.directions, rays.tmax)), None
 
     def close(self) -> None:
         self.mesh = None
@@ -376,7 +319,7 @@ def other_load(busy_before: float | None, busy_after: float | None, own_cpu: flo
 @dataclass
 class Contestant:
     """One tracer on one scene: its samples per query and its latest answers."""
-    variant: bb.Variant              # .name is what the report and the progress show
+    variant: common.Variant          # .name is what the report and the progress show
     tracer: Any
     threads: int | None
     timing: str                      # "wall" (the call) or "device" (kernel events)
@@ -406,7 +349,7 @@ class Contestant:
 
 # -- building the contestants of a scene ---------------------------------------------
 
-def our_trees(scene: bb.Scene, ctx: dev.Context, with_sah: bool) -> tuple[list[tuple[str, dict]], list[str]]:
+def our_trees(scene: common.Scene, ctx: dev.Context, with_sah: bool) -> tuple[list[tuple[str, dict]], list[str]]:
     """``(name, lbvh.build options)`` of our trees for this scene, and notes on trees left out."""
     trees = [(OURS, {}), (f"{OURS}+collapse", {"collapse": True}),
              (TREELETS, {"treelet_rounds": TREELET_ROUNDS, "collapse": True})]
@@ -420,13 +363,7 @@ def our_trees(scene: bb.Scene, ctx: dev.Context, with_sah: bool) -> tuple[list[t
     return trees, notes
 
 
-def timed(build: Any) -> tuple[float, Any]:
-    t0 = time.perf_counter()
-    out = build()
-    return time.perf_counter() - t0, out
-
-
-def make_contestants(scene: bb.Scene, ctx: dev.Context, peers: dict[str, Any],
+def make_contestants(scene: common.Scene, ctx: dev.Context, peers: dict[str, Any],
                      pool: ThreadPoolExecutor, with_sah: bool) -> tuple[list[Contestant], list[str]]:
     """Build every tree (each once, timed for the record) and wrap it as contestants."""
     v, f = scene.vertices, scene.faces
@@ -437,31 +374,31 @@ def make_contestants(scene: bb.Scene, ctx: dev.Context, peers: dict[str, Any],
     if no_kernel:
         notes.append(f"no kernel-only rows: {no_kernel}")
     for name, options in trees:
-        seconds, bvh = timed(lambda: lbvh.build(v, f, device=ctx, **options))
+        seconds, bvh = common.timed(lambda: lbvh.build(v, f, device=ctx, **options))
         bvh.validate()
         family = "sah" if name == "sah" else "lbvh"
-        out.append(Contestant(bb.Variant(name, family, options), OurTree(bvh), None, "wall", seconds))
+        out.append(Contestant(common.Variant(name, family, options), OurTree(bvh), None, "wall", seconds))
         if name == OURS:   # the same tree with the faster, leaky triangle test
-            out.append(Contestant(bb.Variant(MOLLER, "moller", options), OurTree(bvh, "moller"),
+            out.append(Contestant(common.Variant(MOLLER, "moller", options), OurTree(bvh, "moller"),
                                   None, "wall", seconds))
         if not no_kernel:
-            kernels.append(Contestant(bb.Variant(f"{name} (kernel only)", "kernel", options),
+            kernels.append(Contestant(common.Variant(f"{name} (kernel only)", "kernel", options),
                                       OurKernel(bvh), None, "device", seconds))
     out += kernels
     if "embree" in peers:
         embree = peers["embree"]
-        setup, build, built = embree.build(bb.Variant("embree", "embree"), v, f)
+        setup, build, built = embree.build(v, f)
         for threads in (1, 2):
-            out.append(Contestant(bb.Variant(f"embree-{threads}t", "embree"),
+            out.append(Contestant(common.Variant(f"embree-{threads}t", "embree"),
                                   EmbreeTracer(embree, built, threads, pool), threads, "wall",
                                   setup + build))
     if "warp" in peers:
         warp = peers["warp"]
-        variant = bb.Variant("warp", "warp", {"bvh_constructor": WARP_CONSTRUCTOR})
-        setup, build, mesh = warp.build(variant, v, f)
+        variant = common.Variant("warp", "warp", {"bvh_constructor": WARP_CONSTRUCTOR})
+        setup, build, mesh = warp.build(v, f, **variant.options)
         tracer = WarpTracer(warp, mesh)
         out.append(Contestant(variant, tracer, 1, "wall", setup + build))
-        notes.append(f"warp any hit: {tracer.any_hit_note}")
+        notes.append(f"warp any hit: {warp.any_hit_note}")
     return out, notes
 
 
@@ -485,17 +422,17 @@ def differs(a: Answer, ref: Answer, bound: np.ndarray | None) -> np.ndarray:
 
 def agreement_figures(a: Answer, ref: Answer, bound: np.ndarray | None) -> dict:
     if bound is not None:
-        return bb.agreement(a.t, a.prim, ref.t, ref.prim, bound)
+        return common.agreement(a.t, a.prim, ref.t, ref.prim, bound)
     same = a.hit == ref.hit
     n = max(len(same), 1)
     return {"fraction": float(same.sum() / n), "fraction_with_ties": float(same.sum() / n),
             "hit_miss_differ": int((~same).sum())}
 
 
-def judge(scene: bb.Scene, rays: RaySet, ray_ids: np.ndarray, answers: dict[str, Answer]
+def judge(scene: common.Scene, rays: RaySet, ray_ids: np.ndarray, answers: dict[str, Answer]
           ) -> tuple[dict[str, np.ndarray], float]:
     """Which answers on rays ``ray_ids`` are right by the float64 oracle, within float32
-    rounding (:class:`lbvh.check.Judge`); tracers that give only hit or miss are compared
+    rounding (:class:`lbvh.verification.check.Judge`); tracers that give only hit or miss are compared
     with the oracle's hit or miss. Returns ``{name: bool (len(ray_ids),)}`` and seconds."""
     t0 = time.perf_counter()
     o, d = rays.origins[ray_ids], rays.directions[ray_ids]
@@ -516,10 +453,11 @@ def judge(scene: bb.Scene, rays: RaySet, ray_ids: np.ndarray, answers: dict[str,
     return right, time.perf_counter() - t0
 
 
-def compare(scene: bb.Scene, rays: RaySet, contestants: list[Contestant], judge_max: int) -> dict:
+def compare(scene: common.Scene, rays: RaySet, contestants: list[Contestant], judge_max: int) -> dict:
     """Agreement with the reference and oracle verdicts on disagreements, per tracer name."""
     ref = reference_of(contestants).answer[rays.query]
-    bound = (bb.t_bound(scene.vertices, scene.faces, rays.origins, rays.directions, ref.t, ref.prim)
+    bound = (t_bound(scene.vertices, scene.faces, rays.origins, rays.directions, ref.t, ref.prim,
+                     cos_floor=common.AGREEMENT_COS_FLOOR)
              if rays.closest else None)
     answers = {c.name: c.answer[rays.query] for c in contestants if c.answer.get(rays.query) is not None}
     own = {name: differs(a, ref, bound) for name, a in answers.items()}
@@ -538,7 +476,7 @@ def compare(scene: bb.Scene, rays: RaySet, contestants: list[Contestant], judge_
             "disagree": int(own[name].sum()), "judged": int(mine.sum()),
             "right": int((mine & ok).sum()), "wrong": int((mine & ~ok).sum()),
             "wrong_on_judged_rays": int((~ok).sum()),
-            "judged_by": "lbvh.check.Judge" if a.prim is not None else "hit or miss vs the oracle",
+            "judged_by": "lbvh.verification.check.Judge" if a.prim is not None else "hit or miss vs the oracle",
         }
     return out
 
@@ -571,7 +509,7 @@ def ratio_to(c: Contestant, peer: Contestant | None, query: str) -> dict | None:
             "round_min": min(rounds), "round_max": max(rounds), "rounds": rounds}
 
 
-def make_rows(scene: bb.Scene, rays: RaySet, contestants: list[Contestant], figures: dict) -> list[dict]:
+def make_rows(scene: common.Scene, rays: RaySet, contestants: list[Contestant], figures: dict) -> list[dict]:
     by_name = {c.name: c for c in contestants}
     rows = []
     for c in contestants:
@@ -582,7 +520,7 @@ def make_rows(scene: bb.Scene, rays: RaySet, contestants: list[Contestant], figu
         row.update(scene=scene.name, query=q, tracer=c.name, family=c.variant.family,
                    threads=c.threads, timing=c.timing, rays=len(rays), seconds=seconds,
                    samples=c.seconds[q], wall_samples=c.wall[q],
-                   cpu_over_wall=bb.cores_used(c.cpu[q], c.wall[q]),
+                   cpu_over_wall=common.cores_used(c.cpu[q], c.wall[q]),
                    other_load=median_or_none(c.others[q]),
                    rays_per_second=len(rays) / seconds, spread=spread(c.seconds[q]),
                    vs={peer: ratio_to(c, by_name.get(peer), q) for peer in ("embree-1t", "embree-2t", "warp")},
@@ -616,8 +554,8 @@ def steps_per_scene(repeats: int) -> int:
     return 1 + len(QUERIES) * repeats + 1
 
 
-def bench_scene(scene: bb.Scene, ctx: dev.Context, peers: dict[str, Any], pool: ThreadPoolExecutor,
-                args: argparse.Namespace, progress: bb.Progress) -> tuple[dict, list[dict]]:
+def bench_scene(scene: common.Scene, ctx: dev.Context, peers: dict[str, Any], pool: ThreadPoolExecutor,
+                args: argparse.Namespace, progress: common.Progress) -> tuple[dict, list[dict]]:
     """Build, make the rays, trace them in interleaved rounds, compare; the scene's
     summary and rows."""
     progress.note("building")
@@ -634,7 +572,7 @@ def bench_scene(scene: bb.Scene, ctx: dev.Context, peers: dict[str, Any], pool: 
             c.tracer.trace(rays.first())
     progress.advance()
     for rays in ray_sets:
-        bb.interleaved_rounds(contestants, args.repeats, args.budget,
+        common.interleaved_rounds(contestants, args.repeats, args.budget,
                               lambda c, q=rays.query: sum(c.wall.get(q, [])),
                               lambda c, r=rays: c.run(r), progress, rays.query)
     rows, comparisons = [], {}
@@ -645,7 +583,7 @@ def bench_scene(scene: bb.Scene, ctx: dev.Context, peers: dict[str, Any], pool: 
         comparisons[rays.query] = {k: v for k, v in figures.items() if k != "tracers"}
     progress.advance()
     if args.views is not None:
-        bb.save_view(args.views / f"{scene.name}.png", scene, directions, primary.t, primary.prim)
+        common.save_view(args.views / f"{scene.name}.png", scene, directions, primary.t, primary.prim)
     for c in contestants:
         c.tracer.close()
     summary = {"name": scene.name, "source": scene.source, "triangles": len(scene.faces),
@@ -782,10 +720,7 @@ def markdown(report: dict) -> str:
     m, s = report["machine"], report["settings"]
     lines = [
         "# Traversal: closest hit, any hit and ambient occlusion against Embree and warp", "",
-        f"Command: `{report['command']}`  ",
-        f"Run time: {report['duration_seconds']:.0f} s on {m['cpu']}, {m['cores']} cores; "
-        f"OpenCL device: {m['opencl_device']}.  ",
-        f"Peers: {', '.join(m['peers'].values())}.  ",
+        *common.header_lines(report),
         f"Code: commit {str(report['source']['commit'])[:10]}"
         + (f" with uncommitted changes to {', '.join(report['source']['modified'])}"
            if report["source"]["modified"] else "")
@@ -867,7 +802,7 @@ in brackets, the range of the per-round ratios (same round, same noise). `agree`
 with the reference's hit or miss, primitive and t (within 16 u (t + s) / max(|cos|, 1e-3));
 `agree (ties)` also accepts another primitive at the same t; any hits: the same hit or miss.
 `disagree (oracle)`: rays not agreeing even with ties, and of those judged against the float64
-oracle (lbvh.check.Judge: any answer float32 rounding can give is right) how many this tracer
+oracle (lbvh.verification.check.Judge: any answer float32 rounding can give is right) how many this tracer
 got right or wrong. `overflow`: our rays whose traversal stack overflowed."""
 
 
@@ -877,7 +812,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     scene_options = (QUICK_SCENES, FULL_SCENES, QUICK_RAYS, FULL_RAYS)
-    bb.add_scene_options(p, *scene_options)
+    common.add_scene_options(p, *scene_options)
     p.add_argument("--repeats", type=int, default=3, help="rounds per ray set (median)")
     p.add_argument("--budget", type=float, default=60.0,
                    help="a tracer stops repeating a ray set after this many seconds (default 60)")
@@ -887,14 +822,14 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--sah", action="store_true",
                    help=f"also the serial SAH tree, on scenes up to {SAH_MAX_TRIANGLES:,} triangles")
     p.add_argument("--views", type=Path, default=None, help="also write what each camera sees here")
-    bb.add_run_options(p)
+    common.add_run_options(p)
     args = p.parse_args(argv)
     for name in ("repeats", "ao_samples"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')}: at least 1")
     if args.judge < 0:
         p.error("--judge: at least 0")
-    bb.resolve_scenes(p, args, *scene_options)
+    common.resolve_scenes(p, args, *scene_options)
     return args
 
 
@@ -903,7 +838,7 @@ def source_state() -> dict:
     the traversal change under active tuning: a figure must say which code it timed)."""
     def git(*argv: str) -> str:
         try:
-            return subprocess.run(["git", *argv], cwd=HERE.parent, capture_output=True, text=True,
+            return subprocess.run(["git", *argv], cwd=common.REPO, capture_output=True, text=True,
                                   timeout=30).stdout.strip()
         except (OSError, subprocess.SubprocessError):
             return ""
@@ -911,42 +846,39 @@ def source_state() -> dict:
             "modified": git("diff", "--name-only", "HEAD", "--", "lbvh", "kernels").split()}
 
 
-def load_scene(name: str, size: tuple[int, int], cameras: dict[str, dict], shared: Path) -> bb.Scene | str:
+def load_scene(name: str, size: tuple[int, int], cameras: dict[str, dict], shared: Path) -> common.Scene | str:
     """The scene with its camera (``CAMERA_OF`` picks another entry), or why it is skipped."""
     entry = CAMERA_OF.get(name, name)
     if entry not in cameras:
-        return f"no camera {entry!r} in {bb.CAMERAS.name}"
-    return bb.load_bench_scene(name, size, {**cameras, name: cameras[entry]}, shared)
+        return f"no camera {entry!r} in {common.CAMERAS.name}"
+    return common.load_bench_scene(name, size, {**cameras, name: cameras[entry]}, shared)
 
 
 def main(argv: list[str] | None = None) -> dict:
     """Run the bench; returns the report (also written as JSON and Markdown)."""
     args = parse_args(argv)
     started = time.perf_counter()
-    command = " ".join([".venv/bin/python bench/bench_traverse.py",
-                        *(sys.argv[1:] if argv is None else argv)])
+    command = common.command_line("bench_traverse.py", argv)
     source = source_state()
     ctx = dev.get_context(args.device)
-    peers, peer_status = bb.load_peers(not args.no_peers)
-    cameras = bb.load_cameras()
+    peers, peer_status = common.load_peers(not args.no_peers)
+    cameras = common.load_cameras()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    progress = bb.Progress(len(args.scene_names) * steps_per_scene(args.repeats))
+    progress = common.Progress(len(args.scene_names) * steps_per_scene(args.repeats))
     scenes, rows, skipped = [], [], []
     with ThreadPoolExecutor(max_workers=2) as pool:
-        def load(name: str) -> bb.Scene | str:
+        def load(name: str) -> common.Scene | str:
             return load_scene(name, args.size, cameras, args.shared)
 
-        for scene in bb.loaded_scenes(args.scene_names, load, progress,
+        for scene in common.loaded_scenes(args.scene_names, load, progress,
                                       steps_per_scene(args.repeats), skipped):
             summary, scene_rows = bench_scene(scene, ctx, peers, pool, args, progress)
             scenes.append(summary)
             rows += scene_rows
     progress.close()
     report = {
-        "command": command,
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "machine": bb.machine_info(ctx, peer_status),
+        **common.report_start(command, ctx, peer_status),
         "source": {**source, "changed_during_run": source_state() != source},
         "settings": {"scenes": args.scene_names, "width": args.size[0], "height": args.size[1],
                      "repeats": args.repeats, "budget": args.budget, "ao_samples": args.ao_samples,
@@ -954,7 +886,7 @@ def main(argv: list[str] | None = None) -> dict:
                      "quick": args.quick, "reference": REFERENCE,
                      "fallback_reference": FALLBACK_REFERENCE, "embree_chunks": EMBREE_CHUNKS,
                      "warp_constructor": WARP_CONSTRUCTOR,
-                     "t_bound": f"{bb.T_BOUND_ULPS} * 2^-24 * (t_ref + s) / max(|cos a|, {bb.COS_FLOOR})"},
+                     "t_bound": common.AGREEMENT_T_BOUND},
         "scenes": scenes, "skipped": skipped, "rows": rows,
         "closest_ratios": closest_ratios(rows),
         "targets": targets(rows, [s["name"] for s in scenes]),
@@ -972,7 +904,7 @@ def write_outputs(report: dict, out: Path, started: float) -> None:
     report["duration_seconds"] = time.perf_counter() - started
     paths = {"json": out / "bench_traverse.json", "markdown": out / "bench_traverse.md"}
     report["outputs"] = {k: str(p) for k, p in paths.items()}
-    bb.write_report(report, markdown(report), paths, out)
+    common.write_report(report, markdown(report), paths, out)
 
 
 if __name__ == "__main__":

@@ -1,26 +1,54 @@
 """lbvh: bounding volume hierarchies over triangle meshes, built by OpenCL kernels.
 
 Entry points:
-    lbvh.build(vertices, faces, builder="lbvh"|"sah", key_bits="auto", device=None) -> lbvh.BVH
-    bvh.intersect(origins, directions) / bvh.occluded(...)  (ray queries)
+    lbvh.build(vertices, faces, builder="lbvh"|"sah", device=None, collapse=False,
+               options=None | lbvh.LBVHOptions | lbvh.SAHOptions, **fields) -> lbvh.BVH
+    bvh.intersect(origins, directions) / bvh.occluded(...)  (ray queries) -> lbvh.Hits
     lbvh.load(path) -> lbvh.BVH
-    lbvh.render(bvh, camera, mode)
+    lbvh.render(bvh, lbvh.Camera(...), mode)
+    lbvh.sah_cost(bvh), lbvh.tree_quality(bvh)  (the tree's quality)
+Devices are chosen by name (``device=`` or ``$LBVH_DEVICE``, :mod:`lbvh.device`).
 The tree layout is documented in docs/layout.md.
-"""
-from . import traverse
-from .build import build
-from .bvh import BVH, load
-from .camera import Camera, frame_bounds
-from .collapse import collapse_leaves
-from .device import DeviceError, find_device, get_context
-from .layout import NODE_DTYPE
-from .quality import sah_cost, tree_quality
-from .render import render
-from .scene import load_scene
-from .traverse import Hits
-from .validate import BVHValidationError
 
-__all__ = ["build", "load", "BVH", "NODE_DTYPE", "BVHValidationError", "DeviceError",
-           "find_device", "get_context", "collapse_leaves", "sah_cost", "tree_quality",
-           "Camera", "frame_bounds", "render", "load_scene", "Hits", "traverse"]
-__version__ = "0.1.0"
+The package, in layers (a module imports only from layers above it in this list):
+
+==================  =================================================================
+``layout``,         the node record; mesh checks; the build report (numpy only)
+``mesh``, ``report``
+``device/``         contexts, programs, device memory, launches, the radix sort
+``tree``            the values builders take and return: ``Mesh``, ``Tree``
+``builders/``       cost model, options, the stages (bounds, morton, emit, refit),
+                    the optimisers (restructure, collapse), the device pipeline,
+                    the SAH reference
+``queries/``        rays, wide records, ray order, the traversal
+``verification/``   numpy checks a tree and answers are measured by: validator,
+                    quality metrics, float64 oracle, float32 error bound
+``bvh``             the public :class:`BVH`, facade over mesh, tree and caches
+``api``             ``build``, ``load``, ``collapse_leaves``
+``verification/``   what runs builds to check them: hard cases, ``lbvh check``,
+                    the self-test, the kernel variants
+``rendering/``      cameras, scene files, shading, images
+``cli``             the ``lbvh`` command
+==================  =================================================================
+"""
+from .api import build, load
+from .builders.options import CollapseOptions, LBVHOptions, SAHOptions
+from .bvh import BVH
+from .device import CONTEXT_CHECKS, DeviceError
+from .queries.traverse import Hits
+from .rendering.camera import Camera
+from .rendering.render import render
+from .rendering.scene import load_scene
+from .verification.quality import sah_cost, tree_quality
+from .verification.validate import BVHValidationError
+from .verification.selftest import require as _self_test
+from .version import __version__
+
+# Every context get_context hands out has passed the self-test (the device
+# layer knows nothing of builds; the check is registered here, above them all).
+if _self_test not in CONTEXT_CHECKS:
+    CONTEXT_CHECKS.append(_self_test)
+
+__all__ = ["build", "load", "BVH", "Hits", "LBVHOptions", "SAHOptions", "CollapseOptions",
+           "render", "Camera", "load_scene", "sah_cost", "tree_quality", "BVHValidationError",
+           "DeviceError", "__version__"]

@@ -1,4 +1,13 @@
-"""The BVH object: device buffers plus documented numpy views (docs/layout.md)."""
+"""The public BVH: a facade over the mesh, the tree and the query caches, which it alone owns.
+
+The device state is two values (:mod:`lbvh.tree`): the :class:`~lbvh.tree.Mesh`
+and the :class:`~lbvh.tree.Tree` a builder made. The numpy views of
+docs/layout.md, the traversal's wide records, the faces in slot order and the
+depth are made on first use and kept here; a refit renews what depends on the
+boxes. When a BVH is dropped its tree's buffers and its caches go back to the
+context's memory (:mod:`lbvh.device.memory`), where the next build of the
+same size finds them.
+"""
 from __future__ import annotations
 
 import os
@@ -10,10 +19,15 @@ import numpy as np
 import pyopencl as cl
 
 from . import device as dev
-from .geometry import as_faces, as_vertices
+from .builders.refit import refit_boxes
 from .layout import NODE_DTYPE, children_of, is_leaf, node_depths, parents_of, prim_range_of
+from .mesh import as_faces, as_vertices
+from .queries import traverse
+from .queries.traverse import Hits
+from .queries.wide import Wide, make_wide, release_wide, wide_buffers, write_records
 from .report import BuildReport, tree_statistics
-from .validate import BVHValidationError, validate_tree
+from .tree import Mesh, Tree, upload_tree
+from .verification.validate import BVHValidationError, validate_tree
 
 SAVE_FORMAT_VERSION = 1
 
@@ -37,40 +51,35 @@ class BVH:
         vertices:   ``float32 (V, 3)`` and faces: ``uint32 (F, 3)``, the mesh
     """
 
-    def __init__(self, ctx: dev.Context, vertices: np.ndarray, faces: np.ndarray,
-                 vertices_buf: cl.Buffer, faces_buf: cl.Buffer, nodes_buf: cl.Buffer,
-                 parent_buf: cl.Buffer, prim_order_buf: cl.Buffer, num_nodes: int, root: int,
-                 builder: str, report: BuildReport | None = None,
-                 leaf_nodes: np.ndarray | None = None, pooled: bool = False) -> None:
-        """``pooled``: the node, parent and prim_order buffers go back to the
-        context's pool when the tree is dropped (trees built on the device)."""
-        self.ctx = ctx
-        self.vertices = vertices
-        self.faces = faces
-        self.vertices_buf = vertices_buf
-        self.faces_buf = faces_buf
-        self.nodes_buf = nodes_buf
-        self.parent_buf = parent_buf
-        self.prim_order_buf = prim_order_buf
-        self.num_nodes = int(num_nodes)
-        self.num_prims = int(len(faces))
-        self.root = int(root)
-        self.builder = builder
-        self.build_report = report
-        # Leaves of a Karras tree are the contiguous block [F-1, 2F-1); other
-        # builders pass the list of their leaf nodes for the device refit.
-        self._leaf_nodes = leaf_nodes
-        self._leaf_nodes_buf: cl.Buffer | None = None
-        self._wide = None           # wide records of the traversal (lbvh.wide.wide_for)
-        self._slot_faces = None     # faces in slot order, for the traversal (slot_faces_for)
+    def __init__(self, mesh: Mesh, tree: Tree) -> None:
+        """Own ``tree`` (over ``mesh``): its buffers go back to the context's memory
+        when this BVH is dropped. Made by :func:`lbvh.build`, :meth:`from_arrays`
+        and :func:`lbvh.load`."""
+        self.mesh = mesh
+        self.tree = tree
         self._host: dict[str, np.ndarray] = {}
-        # Buffers handed to the context's pool when the tree is dropped: the
-        # build's outputs (``pooled``) and the traversal's wide records.
-        self._pooled: list[tuple[cl.Buffer, int]] = []
-        if pooled:
-            sizes = (NODE_DTYPE.itemsize * self.num_nodes, 4 * self.num_nodes, 4 * self.num_prims)
-            self._pooled += zip((nodes_buf, parent_buf, prim_order_buf), sizes)
-        weakref.finalize(self, _give_back, ctx, self._pooled)
+        self._wide: Wide | None = None
+        self._slot_faces: cl.Buffer | None = None
+        self._depth: int | None = None
+        # Everything handed back when this BVH is dropped: the tree's buffers and
+        # the caches' (appended as they are made).
+        self._owned: list[cl.Buffer] = tree.buffers()
+        weakref.finalize(self, tree.ctx.memory.dropped, self._owned)
+
+    # -- what the tree and mesh say ---------------------------------------------
+    ctx = property(lambda self: self.tree.ctx, doc="the :class:`lbvh.device.Context`")
+    root = property(lambda self: self.tree.root, doc="index of the root node")
+    num_nodes = property(lambda self: self.tree.num_nodes)
+    num_prims = property(lambda self: self.tree.num_prims)
+    builder = property(lambda self: self.tree.builder, doc="what built the tree")
+    build_report = property(lambda self: self.tree.report, doc="the build's figures, or None")
+    nodes_buf = property(lambda self: self.tree.nodes, doc="device node records")
+    parent_buf = property(lambda self: self.tree.parent, doc="device int32 parents")
+    prim_order_buf = property(lambda self: self.tree.prim_order, doc="device int32 order")
+    vertices = property(lambda self: self.mesh.vertices, doc="float32 (V, 3)")
+    faces = property(lambda self: self.mesh.faces, doc="uint32 (F, 3)")
+    vertices_buf = property(lambda self: self.mesh.vertices_buf)
+    faces_buf = property(lambda self: self.mesh.faces_buf)
 
     # -- construction from host arrays (other builders, load) ----------------
     @classmethod
@@ -101,25 +110,22 @@ class BVH:
         if validate:
             validate_tree(nodes, parent, prim_order, root, vertices, faces)
         ctx = dev.get_context(device)
-        leaf_nodes = np.flatnonzero(is_leaf(nodes)).astype(np.int32)
-        rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
         with ctx.lock:
-            return cls(ctx, vertices, faces, dev.to_device(ctx, vertices), dev.to_device(ctx, faces),
-                       cl.Buffer(ctx.ctx, rw, hostbuf=nodes), cl.Buffer(ctx.ctx, rw, hostbuf=parent),
-                       cl.Buffer(ctx.ctx, rw, hostbuf=prim_order), len(nodes), root, builder, report,
-                       leaf_nodes=leaf_nodes)
+            mesh = Mesh.upload(ctx, vertices, faces)
+            return cls(mesh, upload_tree(ctx, nodes, parent, prim_order, root, builder, report))
 
     # -- numpy views ----------------------------------------------------------
     @dev.serialised
     def _fetch(self, name: str) -> np.ndarray:
         arr = self._host.get(name)
         if arr is None:
+            tree = self.tree
             if name == "nodes":
-                arr = dev.from_device(self.ctx, self.nodes_buf, NODE_DTYPE, (self.num_nodes,))
+                arr = dev.from_device(self.ctx, tree.nodes, NODE_DTYPE, (tree.num_nodes,))
             elif name == "parent":
-                arr = dev.from_device(self.ctx, self.parent_buf, np.int32, (self.num_nodes,))
+                arr = dev.from_device(self.ctx, tree.parent, np.int32, (tree.num_nodes,))
             elif name == "prim_order":
-                arr = dev.from_device(self.ctx, self.prim_order_buf, np.int32, (self.num_prims,))
+                arr = dev.from_device(self.ctx, tree.prim_order, np.int32, (tree.num_prims,))
             else:
                 nodes = self._fetch("nodes")
                 arr = {"children": children_of, "prim_range": prim_range_of,
@@ -144,9 +150,9 @@ class BVH:
     @property
     def leaf_nodes(self) -> np.ndarray:
         """``int32`` indices of the leaf nodes."""
-        if self._leaf_nodes is None:
+        if self.tree.leaf_nodes is None:
             return np.flatnonzero(self.is_leaf).astype(np.int32)
-        return self._leaf_nodes
+        return self.tree.leaf_nodes
 
     # -- checks and reports ---------------------------------------------------
     def validate(self) -> None:
@@ -161,6 +167,43 @@ class BVH:
         rep.update_stats(stats)
         return rep
 
+    # -- query caches (lbvh.queries.target.QueryTarget) -------------------------
+    @dev.serialised
+    def wide_records(self, width: int | None = None, max_bytes: int | None = None) -> Wide:
+        """The traversal's wide records (:mod:`lbvh.queries.wide`), made on first use;
+        records of another ``width`` (4 or 8) replace them, and ``max_bytes`` as
+        :func:`~lbvh.queries.wide.make_wide` takes it."""
+        cached = self._wide
+        if cached is not None and (width is None or cached.width == width or not cached.packed) \
+                and max_bytes is None:
+            return cached
+        wide = make_wide(self.tree, width, max_bytes)
+        self._drop_wide()
+        self._wide = wide
+        self._owned.extend(wide_buffers(wide))
+        return wide
+
+    def _drop_wide(self) -> None:
+        wide, self._wide = self._wide, None
+        if wide is not None:
+            gone = {id(b) for b in wide_buffers(wide)}
+            self._owned[:] = [b for b in self._owned if id(b) not in gone]
+            release_wide(self.ctx.memory, wide)
+
+    @dev.serialised
+    def slot_faces(self) -> cl.Buffer:
+        """``uint32 (F, 3)`` faces in slot order on the device, made on first use."""
+        if self._slot_faces is None:
+            self._slot_faces = traverse.order_faces(self.tree, self.mesh)
+            self._owned.append(self._slot_faces)
+        return self._slot_faces
+
+    def traversal_depth(self) -> int:
+        """The tree's depth, 0 for a root leaf (its topology never changes)."""
+        if self._depth is None:
+            self._depth = int(self.depths().max()) if self.num_nodes > 1 else 0
+        return self._depth
+
     # -- animation ------------------------------------------------------------
     @dev.serialised
     def refit(self, vertices: Any) -> "BVH":
@@ -170,50 +213,35 @@ class BVH:
         built on.  On a bad input nothing changes and the tree stays usable.
         Returns ``self``.
         """
-        from .refit import refit_boxes
-        from .wide import refresh_wide
-
         v = as_vertices(vertices)
         if v.shape != self.vertices.shape:
             raise ValueError(f"vertices: shape {v.shape}, the tree was built over {self.vertices.shape}")
-        new_buf = dev.to_device(self.ctx, v)
-        refit_boxes(self.ctx, new_buf, self.faces_buf, self.prim_order_buf, self.nodes_buf,
-                    self.parent_buf, self.num_prims, self.num_nodes, self._leaf_nodes_device())
-        self.vertices_buf, self.vertices = new_buf, v
+        mesh = self.mesh.with_vertices(self.ctx, v)
+        tree = self.tree
+        leaf_list = tree.leaf_walks()[0]
+        refit_boxes(self.ctx, mesh.vertices_buf, mesh.faces_buf, tree.prim_order, tree.nodes,
+                    tree.parent, tree.num_prims, tree.num_nodes, leaf_list)
+        self.mesh = mesh
         self._host.clear()
-        refresh_wide(self)   # the traversal's copies of the boxes
+        if self._wide is not None:
+            write_records(self.tree, self._wide)   # the traversal's copies of the boxes
         return self
 
     def leaf_walks(self) -> tuple[cl.Buffer | None, int, int]:
-        """Where bottom-up walks start: ``(device leaf list or None, first leaf, leaf count)``.
+        """Where bottom-up walks start (:meth:`lbvh.tree.Tree.leaf_walks`)."""
+        return self.tree.leaf_walks()
 
-        Karras trees have their leaves in the block ``[F-1, 2F-1)`` and no list;
-        other trees list their leaf nodes in an int32 device buffer.
-        """
-        if self._leaf_nodes is None:
-            return None, self.num_prims - 1, self.num_prims
-        return self._leaf_nodes_device(), 0, len(self._leaf_nodes)
-
-    def _leaf_nodes_device(self) -> cl.Buffer | None:
-        if self._leaf_nodes is None:
-            return None
-        if self._leaf_nodes_buf is None:
-            self._leaf_nodes_buf = dev.to_device(self.ctx, self._leaf_nodes)
-        return self._leaf_nodes_buf
-
-    # -- ray queries (lbvh/traverse.py, kernels/traverse.cl) -------------------
+    # -- ray queries (lbvh/queries/traverse.py, kernels/traverse.cl) ------------
     def intersect(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf,
-                  **options: Any):
-        """Closest hit of each ray; see :func:`lbvh.traverse.intersect`."""
-        from .traverse import intersect
-        return intersect(self, origins, directions, tmin, tmax, **options)
+                  **options: Any) -> Hits:
+        """Closest hit of each ray; see :func:`lbvh.queries.traverse.intersect`."""
+        return traverse.intersect(self, origins, directions, tmin, tmax, **options)
 
     def occluded(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf,
-                 **options: Any):
+                 **options: Any) -> np.ndarray | Hits:
         """Whether each ray hits anything in [tmin, tmax]: ``bool (N,)``, or a
-        :class:`lbvh.traverse.Hits` with ``return_hits=True``; see :func:`lbvh.traverse.occluded`."""
-        from .traverse import occluded
-        return occluded(self, origins, directions, tmin, tmax, **options)
+        :class:`lbvh.Hits` with ``return_hits=True``; see :func:`lbvh.queries.traverse.occluded`."""
+        return traverse.occluded(self, origins, directions, tmin, tmax, **options)
 
     # -- persistence ------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:
@@ -225,34 +253,3 @@ class BVH:
     def __repr__(self) -> str:
         return (f"<lbvh.BVH {self.builder}: {self.num_prims} triangles, {self.num_nodes} nodes "
                 f"on {self.ctx.name}>")
-
-
-def _give_back(ctx: dev.Context, buffers: list[tuple[cl.Buffer, int]]) -> None:
-    if buffers:
-        ctx.dropped(buffers)
-
-
-def load(path: str | os.PathLike, device: Any = None) -> BVH:
-    """Read a tree written by :meth:`BVH.save` and upload it to the device."""
-    path = Path(path)
-    try:
-        data = np.load(path, allow_pickle=False)
-    except Exception as exc:  # OSError, ValueError, zipfile.BadZipFile, EOFError...
-        raise ValueError(f"{path}: not a saved lbvh BVH ({type(exc).__name__}: {exc})") from None
-    with data:
-        missing = {"format_version", "nodes", "prim_order", "root", "vertices", "faces"} - set(data.files)
-        if missing:
-            raise ValueError(f"{path}: not a saved lbvh BVH (missing {sorted(missing)})")
-        if int(data["format_version"]) != SAVE_FORMAT_VERSION:
-            raise ValueError(f"{path}: format version {int(data['format_version'])}, "
-                             f"this lbvh reads {SAVE_FORMAT_VERSION}")
-        nodes = data["nodes"]
-        if nodes.dtype != NODE_DTYPE:
-            raise ValueError(f"{path}: nodes have dtype {nodes.dtype}, expected {NODE_DTYPE}")
-        builder = str(data["builder"]) if "builder" in data.files else "loaded"
-        try:
-            bvh = BVH.from_arrays(nodes, data["prim_order"], int(data["root"]), data["vertices"],
-                                  data["faces"], builder=builder, device=device)
-        except ValueError as exc:
-            raise ValueError(f"{path}: {exc}") from None
-    return bvh

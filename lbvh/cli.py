@@ -17,8 +17,16 @@ import sys
 import time
 from pathlib import Path
 
-from .build import BUILDERS, build
-from .device import DeviceError, describe, find_device
+from .api import build
+from .builders.options import BUILDERS
+from .device import DeviceError, all_devices, describe, find_device, get_context, pocl_target
+from .rendering.camera import DEFAULT_SIZE, MAX_SIDE, frame_bounds
+from .rendering.image import image_kind
+from .rendering.render import AO_SAMPLES, MODES, check_mode, render
+from .rendering.scene import load_scene
+from .verification import selftest
+from .verification.check import add_arguments as add_check_arguments
+from .verification.check import cmd_check as run_checks
 
 
 class UsageError(ValueError):
@@ -37,8 +45,6 @@ SIZE_PATTERN = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
 
 def parse_size(text: str) -> tuple[int, int]:
     """``"WxH"`` -> ``(W, H)``; ``ValueError`` naming the text otherwise."""
-    from .camera import MAX_SIDE
-
     match = SIZE_PATTERN.match(text)
     if not match:
         raise ValueError(f"--size: {text!r} is not WIDTHxHEIGHT (e.g. 640x480)")
@@ -69,8 +75,6 @@ def _build(scene, args: argparse.Namespace):
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from .scene import load_scene
-
     scene = load_scene(args.scene)
     bvh = _build(scene, args)
     if args.validate:
@@ -87,11 +91,6 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from .camera import DEFAULT_SIZE, frame_bounds
-    from .image import image_kind
-    from .render import check_mode, render
-    from .scene import load_scene
-
     # Everything the user typed is checked before the (slow) build starts.
     image_kind(args.output)
     folder = Path(args.output).resolve().parent
@@ -136,14 +135,9 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_devices(args: argparse.Namespace) -> int:
-    from .device import _all_devices
-
-    from . import pocl_target, selftest
-    from .device import DeviceError, get_context
-
     default = find_device(args.device)
     failed = False
-    for label, dev in _all_devices():
+    for label, dev in all_devices():
         mark = "*" if dev.int_ptr == default.int_ptr else " "
         status = "not run (--no-self-test)"
         if not args.no_self_test and not selftest.enabled():
@@ -168,14 +162,10 @@ def cmd_devices(args: argparse.Namespace) -> int:
 
 
 def cmd_check(args: argparse.Namespace) -> int:
-    from .check import cmd_check as run_checks
-
     return run_checks(args)
 
 
 def make_parser() -> argparse.ArgumentParser:
-    from .render import AO_SAMPLES, MODES
-
     parser = _Parser(prog="lbvh", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("info", help="build a scene's BVH and print the report")
@@ -199,7 +189,6 @@ def make_parser() -> argparse.ArgumentParser:
     _add_build_options(p)
     p.set_defaults(func=cmd_render)
     p = sub.add_parser("check", help="run the hard-case suite with every builder and report")
-    from .check import add_arguments as add_check_arguments
     add_check_arguments(p)
     p.set_defaults(func=cmd_check)
     p = sub.add_parser("devices", help="list the OpenCL devices and their self-test results")

@@ -4,11 +4,11 @@ from __future__ import annotations
 import functools
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-import lbvh
-from lbvh.scene import load_mesh
+from lbvh.device import get_context
+from lbvh.rendering.scene import load_mesh
+from lbvh.verification.meshes import soup
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED_SCENES = REPO / "scenes"
@@ -17,7 +17,7 @@ SHARED_SCENES = REPO.parent / "shared" / "scenes"
 
 @pytest.fixture(scope="session")
 def ctx():
-    return lbvh.get_context()
+    return get_context()
 
 
 @functools.lru_cache(maxsize=None)
@@ -41,7 +41,4 @@ def shared_mesh(name: str):
 
 def random_soup(n: int, seed: int = 0, scale: float = 1.0):
     """n small random triangles in a cube: the generic well-behaved case."""
-    rng = np.random.default_rng(seed)
-    centres = rng.random((n, 1, 3), dtype=np.float32) * scale
-    v = (centres + rng.normal(0, 0.01 * scale, (n, 3, 3)).astype(np.float32)).reshape(-1, 3)
-    return v.astype(np.float32), np.arange(3 * n, dtype=np.uint32).reshape(n, 3)
+    return soup(n, seed, scale=scale, spread="normal")

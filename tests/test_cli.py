@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from lbvh.cli import main, parse_size
-from lbvh.image import read_image
+from lbvh.rendering.image import read_image
 
 REPO = Path(__file__).resolve().parents[1]
 CORNELL = str(REPO / "scenes" / "cornell.json")

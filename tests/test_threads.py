@@ -23,6 +23,7 @@ SCRIPT = r"""
 import hashlib, random, sys, threading, time
 import numpy as np
 import lbvh
+from lbvh.rendering.camera import frame_bounds
 sys.path.insert(0, "tests")
 from conftest import random_soup, shipped_mesh
 
@@ -34,7 +35,7 @@ targets = v[f[rng.integers(0, len(f), 6000)]].mean(axis=1)
 o = (targets + rng.normal(size=targets.shape) * 40).astype(np.float32)
 d = (targets - o).astype(np.float32)
 shared = lbvh.build(v, f)
-camera = lbvh.frame_bounds(v.min(axis=0), v.max(axis=0), 48, 32)
+camera = frame_bounds(v.min(axis=0), v.max(axis=0), 48, 32)
 
 def digest(*arrays):
     # + 0.0 turns -0.0 into 0.0: the refit's min and max may give a box corner

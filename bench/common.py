@@ -1,0 +1,555 @@
+"""What the bench scripts share (bench_build, bench_builders, bench_traverse): one home each.
+
+bench/ is not a package. A script run as ``python bench/<script>.py`` has its
+own folder on ``sys.path`` and imports this module as ``common``; the tests
+put bench/ on ``sys.path`` before they load a script. No bench script imports
+another one: what two of them need lives here.
+
+* the environment: ``OPENBLAS_NUM_THREADS=1``, set before numpy loads (so a
+  script imports this module before numpy);
+* scenes: the shipped (``scenes/``), shared (``../shared/scenes``) and
+  generated (:mod:`lbvh.verification.meshes`) scenes by name, the cameras of
+  ``bench/cameras.json``, :class:`Scene` and its loading;
+* the peers: :class:`Embree` (embreex) and :class:`Warp` (warp-lang on the
+  CPU), each with its build, closest-hit and any-hit query, and
+  :func:`load_peers`;
+* the machine: :func:`cpu_model`, :func:`library_versions`, :func:`machine_info`;
+* timing: :func:`median`, :func:`timed`, :func:`cores_used`,
+  :func:`interleaved_rounds`, :class:`Progress`;
+* hits: :func:`agreement` with a reference tracer, and the floor of ``|cos a|``
+  in the float32 bound on ``t`` the benches use (the bound itself is
+  :func:`lbvh.verification.error_bound.t_bound`);
+* the command-line options and the report writing of the benches that trace
+  camera rays, and :func:`save_view`.
+
+The cost constants of the SAH come from :mod:`lbvh.builders.cost`.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import datetime
+import importlib
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator, Sequence
+
+# numpy's OpenBLAS threads spin for a while after any BLAS call and take cycles
+# from the device's threads (about 5% of a build profile); nothing measured here
+# uses BLAS. Set before numpy is imported: the scripts import this module first.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import pyopencl as cl  # noqa: E402
+
+from lbvh.verification import meshes  # noqa: E402
+
+import lbvh  # noqa: E402
+from lbvh import device as dev  # noqa: E402
+from lbvh.rendering.camera import Camera  # noqa: E402
+from lbvh.rendering.image import write_image  # noqa: E402
+from lbvh.rendering.render import display, shade_primary  # noqa: E402
+from lbvh.rendering.scene import load_mesh  # noqa: E402
+from lbvh.verification.error_bound import T_BOUND_ULPS  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+SHIPPED_SCENES = REPO / "scenes"
+SHARED_SCENES = REPO.parent / "shared" / "scenes"
+CAMERAS = HERE / "cameras.json"
+#: Default output folder of the benches (git-ignored).
+DEFAULT_OUT = HERE / "out"
+
+
+# -- hits --------------------------------------------------------------------------
+
+#: Floor of ``|cos a|`` in the benches' agreement test: the float32 bound on ``t``
+#: (:func:`lbvh.verification.error_bound.t_bound`, whose own floor only keeps the
+#: quotient finite) with a floor of 1e-3, a stricter test for grazing rays, as the
+#: tables' column notes say.
+AGREEMENT_COS_FLOOR = 1e-3
+#: The bound of the agreement test, as the reports' settings state it.
+AGREEMENT_T_BOUND = f"{T_BOUND_ULPS} * 2^-24 * (t_ref + s) / max(|cos a|, {AGREEMENT_COS_FLOOR})"
+
+
+def agreement(t: np.ndarray, prim: np.ndarray, t_ref: np.ndarray, prim_ref: np.ndarray,
+              bound: np.ndarray) -> dict:
+    """How far a ray query's closest hits agree with the reference's: the fraction of
+    rays with the same hit or miss, the same primitive and ``t`` within ``bound``
+    (``fraction``), and the same counting another primitive at ``t`` within the
+    bound (``fraction_with_ties``: two triangles meeting the ray at one point)."""
+    hit, hit_ref = prim >= 0, prim_ref >= 0
+    same_status = hit == hit_ref
+    both = hit & hit_ref
+    err = np.zeros(len(t))
+    err[both] = np.abs(t[both].astype(np.float64) - t_ref[both])
+    t_ok = ~both | (err <= bound)
+    same_prim = prim == prim_ref
+    strict = same_status & t_ok & (~both | same_prim)
+    with_ties = same_status & t_ok
+    n = max(len(t), 1)
+    worst = float((err[both] / bound[both]).max()) if both.any() else 0.0
+    return {"fraction": float(strict.sum() / n), "fraction_with_ties": float(with_ties.sum() / n),
+            "hit_miss_differ": int((~same_status).sum()),
+            "ties": int((both & ~same_prim & t_ok).sum()),
+            "t_out_of_bound": int((both & ~t_ok).sum()), "max_t_error_over_bound": worst}
+
+
+# -- scenes ------------------------------------------------------------------------
+
+#: Scenes read from files: name -> (folder, file).
+FILE_SCENES = {
+    "teapot": (SHIPPED_SCENES, "teapot.obj"),
+    "suzanne": (SHIPPED_SCENES, "suzanne.obj"),
+    "bunny": (SHARED_SCENES, "stanford-bunny.obj"),
+    "sponza": (SHARED_SCENES, "crytek_sponza.obj"),
+    "sibenik": (SHARED_SCENES, "sibenik.obj"),
+    "conference": (SHARED_SCENES, "conference.obj"),
+}
+#: Generated scenes (lbvh/verification/meshes.py), at least 1M triangles each.
+GENERATED_SCENES: dict[str, Callable[[], tuple[np.ndarray, np.ndarray]]] = {
+    "soup-1m": lambda: meshes.soup(1_000_000, seed=0),
+    "terrain-1m": lambda: meshes.terrain(1_002_528, seed=0),   # 2 * 708^2 triangles
+}
+
+
+@dataclass
+class Scene:
+    name: str
+    source: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    camera: Camera
+
+
+def load_cameras(path: Path = CAMERAS) -> dict[str, dict]:
+    data = json.loads(Path(path).read_text())
+    return {k: v for k, v in data.items() if not k.startswith("_")}
+
+
+def known_scenes() -> list[str]:
+    return [*FILE_SCENES, *GENERATED_SCENES]
+
+
+def scene_file(name: str, shared: Path = SHARED_SCENES) -> Path:
+    """The file of scene ``name`` (:data:`FILE_SCENES`; another name: ``<name>.obj``
+    in the shared folder), with ``shared`` in place of the shared scenes' folder."""
+    folder, filename = FILE_SCENES.get(name, (SHARED_SCENES, f"{name}.obj"))
+    return (shared if folder == SHARED_SCENES else folder) / filename
+
+
+def load_bench_scene(name: str, size: tuple[int, int], cameras: dict[str, dict],
+                     shared: Path = SHARED_SCENES) -> Scene | str:
+    """The scene and its camera at ``size = (width, height)``, or why it is skipped."""
+    if name not in cameras:
+        return f"no camera for {name!r} in {CAMERAS.name}"
+    camera = Camera.from_dict(cameras[name], size=size)
+    if name in GENERATED_SCENES:
+        v, f = GENERATED_SCENES[name]()
+        return Scene(name, "lbvh/verification/meshes.py", v, f, camera)
+    path = scene_file(name, shared)
+    if not path.is_file():
+        return f"{path} not found"
+    v, f = load_mesh(path)
+    return Scene(name, str(path), v, f, camera)
+
+
+def loaded_scenes(names: list[str], load: Callable[[str], "Scene | str"], progress: "Progress",
+                  steps: int, skipped: list[dict]) -> Iterator[Scene]:
+    """Each scene that ``load(name)`` returns, in order, with progress. A scene it
+    cannot load (it returns the reason, a string) goes to ``skipped``, and its
+    ``steps`` count as done."""
+    for name in names:
+        progress.begin(f"{name}:")
+        progress.note("loading")
+        scene = load(name)
+        if isinstance(scene, str):
+            skipped.append({"scene": name, "reason": scene})
+            progress.done += steps
+            continue
+        yield scene
+
+
+def save_view(path: Path, scene: Scene, directions: np.ndarray, t: np.ndarray, prim: np.ndarray) -> None:
+    """What the camera sees (headlight shading of the given hits), for choosing cameras."""
+    image = shade_primary("diffuse", t, prim, directions, scene.vertices, scene.faces,
+                          scene.camera.width, scene.camera.height)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_image(path, display("diffuse", image))
+
+
+# -- the peers ------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Variant:
+    """One builder or tracer configuration: ``family`` is ``lbvh`` or ``sah`` (our
+    trees, traced by our kernel), ``embree`` or ``warp`` (peers), or another word a
+    bench gives its own rows; ``options`` are the builder's keyword arguments."""
+    name: str
+    family: str
+    options: dict = field(default_factory=dict, hash=False)
+
+    @property
+    def ours(self) -> bool:
+        return self.family in ("lbvh", "sah")
+
+
+class Embree:
+    """Embree 4 through embreex: the build is the scene commit, run by the first query.
+    Raises ``ImportError`` when embreex is not installed."""
+
+    def __init__(self) -> None:
+        from embreex import mesh_construction, rtcore_scene
+        self.rtcs, self.mc = rtcore_scene, mesh_construction
+        import embreex
+        self.version = getattr(embreex, "__version__", "installed")
+
+    def variants(self) -> list[Variant]:
+        return [Variant("embree", "embree")]
+
+    def build(self, vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float, Any]:
+        """``(setup seconds, build seconds, scene)``: setup is the scene's creation and
+        the copy of the mesh into it, build the commit (a one-ray query)."""
+        faces_i32 = faces.astype(np.int32)
+        t0 = time.perf_counter()
+        scene = self.rtcs.EmbreeScene()
+        mesh = self.mc.TriangleMesh(scene, vertices, faces_i32)
+        t1 = time.perf_counter()
+        scene.run(np.zeros((1, 3), np.float32), np.float32([[0.0, 0.0, 1.0]]))   # commit = build
+        t2 = time.perf_counter()
+        return t1 - t0, t2 - t1, (scene, mesh)
+
+    def trace(self, built: Any, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Closest hits ``(t float32, prim int32)``, ``inf`` / ``-1`` on a miss."""
+        out = built[0].run(origins, directions, output=1)
+        prim = out["primID"].astype(np.int32)
+        t = np.where(prim >= 0, out["tfar"], np.inf).astype(np.float32)
+        return t, prim
+
+    def occluded(self, built: Any, origins: np.ndarray, directions: np.ndarray,
+                 tmax: float) -> np.ndarray:
+        """Any hit within ``tmax``: ``bool (N,)``."""
+        # dists is Embree's tfar per ray; a fresh array (embreex writes into it)
+        hit_geometry = built[0].run(origins, directions, dists=np.full(len(origins), tmax, np.float32),
+                                    query="OCCLUDED")
+        return hit_geometry >= 0
+
+
+def warp_has_builtin(wp: Any, name: str) -> bool:
+    """Whether this warp's kernels can call builtin ``name`` (builtins are not module
+    attributes; their table moved to ``warp._src`` in warp 1.10)."""
+    for module in ("warp._src.context", "warp.context"):
+        try:
+            return name in importlib.import_module(module).builtin_functions
+        except (ImportError, AttributeError):
+            continue
+    return hasattr(wp, name)
+
+
+class Warp:
+    """warp-lang's ``wp.Mesh`` on the CPU device, one variant per BVH constructor; a
+    CPU launch runs on one thread. Raises ``ImportError`` when warp is not installed."""
+
+    CONSTRUCTORS = ("sah", "median", "cubql")
+
+    def __init__(self) -> None:
+        import warp as wp
+        wp.config.quiet = True
+        with contextlib.redirect_stdout(sys.stderr):   # keep stdout pure Markdown
+            wp.init()
+        self.wp = wp
+        self.version = wp.__version__
+        self.has_any_hit = warp_has_builtin(wp, "mesh_query_ray_anyhit")
+        self._kernels: tuple[Any, Any] | None = None
+
+    @property
+    def any_hit_note(self) -> str:
+        return ("wp.mesh_query_ray_anyhit" if self.has_any_hit else
+                "this warp has no any-hit query: closest hit wp.mesh_query_ray with max_t")
+
+    def variants(self) -> list[Variant]:
+        return [Variant(f"warp-{c}", "warp", {"bvh_constructor": c}) for c in self.CONSTRUCTORS]
+
+    def arrays(self, vertices: np.ndarray, faces: np.ndarray) -> tuple[Any, Any]:
+        """The mesh as warp arrays on the CPU: ``(points, indices)``."""
+        wp = self.wp
+        return (wp.array(vertices, dtype=wp.vec3, device="cpu"),
+                wp.array(faces.astype(np.int32).ravel(), dtype=wp.int32, device="cpu"))
+
+    def mesh(self, points: Any, indices: Any, bvh_constructor: str) -> Any:
+        """``wp.Mesh`` with this constructor; a warning (warp's silent fallback to
+        another constructor) raises instead."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            return self.wp.Mesh(points, indices, bvh_constructor=bvh_constructor)
+
+    def build(self, vertices: np.ndarray, faces: np.ndarray,
+              bvh_constructor: str = "sah") -> tuple[float, float, Any]:
+        """``(setup seconds, build seconds, mesh)``: setup is the copy into warp arrays."""
+        t0 = time.perf_counter()
+        points, indices = self.arrays(vertices, faces)
+        t1 = time.perf_counter()
+        mesh = self.mesh(points, indices, bvh_constructor)
+        t2 = time.perf_counter()
+        return t1 - t0, t2 - t1, mesh
+
+    def kernels(self) -> tuple[Any, Any]:
+        """The closest-hit and any-hit kernels, made together on first use (warp
+        compiles a module's kernels at once, and caches them on disk)."""
+        if self._kernels is None:
+            wp = self.wp
+
+            @wp.kernel
+            def closest_hit(mesh: wp.uint64, origins: wp.array(dtype=wp.vec3),
+                            directions: wp.array(dtype=wp.vec3), t_out: wp.array(dtype=float),
+                            prim_out: wp.array(dtype=int)):
+                i = wp.tid()
+                q = wp.mesh_query_ray(mesh, origins[i], directions[i], 1.0e30)
+                if q.result:
+                    t_out[i] = q.t
+                    prim_out[i] = q.face
+                else:
+                    t_out[i] = wp.inf
+                    prim_out[i] = -1
+
+            if self.has_any_hit:
+                @wp.func
+                def blocked(mesh: wp.uint64, o: wp.vec3, d: wp.vec3, max_t: float) -> bool:
+                    return wp.mesh_query_ray_anyhit(mesh, o, d, max_t)
+            else:
+                @wp.func
+                def blocked(mesh: wp.uint64, o: wp.vec3, d: wp.vec3, max_t: float) -> bool:
+                    return wp.mesh_query_ray(mesh, o, d, max_t).result
+
+            @wp.kernel
+            def any_hit(mesh: wp.uint64, origins: wp.array(dtype=wp.vec3),
+                        directions: wp.array(dtype=wp.vec3), max_t: float,
+                        hit_out: wp.array(dtype=wp.int32)):
+                i = wp.tid()
+                hit_out[i] = 0
+                if blocked(mesh, origins[i], directions[i], max_t):
+                    hit_out[i] = 1
+
+            self._kernels = (closest_hit, any_hit)
+        return self._kernels
+
+    def _launch(self, kernel: Any, n: int, inputs: list) -> None:
+        with contextlib.redirect_stdout(sys.stderr):   # warp reports module loads on stdout
+            self.wp.launch(kernel, dim=n, device="cpu", inputs=inputs)
+            self.wp.synchronize()
+
+    def _vec3(self, a: np.ndarray) -> Any:
+        return self.wp.array(a, dtype=self.wp.vec3, device="cpu")
+
+    def trace(self, mesh: Any, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Closest hits ``(t float32, prim int32)``, ``inf`` / ``-1`` on a miss."""
+        wp = self.wp
+        n = len(origins)
+        t = wp.empty(n, dtype=float, device="cpu")
+        prim = wp.empty(n, dtype=int, device="cpu")
+        self._launch(self.kernels()[0], n,
+                     [mesh.id, self._vec3(origins), self._vec3(directions), t, prim])
+        return t.numpy().astype(np.float32), prim.numpy().astype(np.int32)
+
+    def occluded(self, mesh: Any, origins: np.ndarray, directions: np.ndarray,
+                 tmax: float) -> np.ndarray:
+        """Any hit within ``tmax`` (:attr:`any_hit_note` says which query): ``bool (N,)``."""
+        n = len(origins)
+        hit = self.wp.empty(n, dtype=self.wp.int32, device="cpu")
+        self._launch(self.kernels()[1], n,
+                     [mesh.id, self._vec3(origins), self._vec3(directions), float(tmax), hit])
+        return hit.numpy() != 0
+
+
+#: The peers in the order the benches list them: family -> adapter class.
+PEERS = {"embree": Embree, "warp": Warp}
+
+
+def load_peers(enabled: bool) -> tuple[dict[str, Any], dict[str, str]]:
+    """Importable peers ``{family: peer}`` and a status line for each."""
+    peers, status = {}, {}
+    for family, cls in PEERS.items():
+        if not enabled:
+            status[family] = "disabled (--no-peers)"
+            continue
+        try:
+            peers[family] = cls()
+            status[family] = f"{family} {peers[family].version}"
+        except ImportError as exc:
+            status[family] = f"not installed ({exc})"
+    return peers, status
+
+
+# -- the machine -----------------------------------------------------------------------
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def library_versions() -> dict[str, str]:
+    return {"python": platform.python_version(), "numpy": np.__version__,
+            "pyopencl": cl.VERSION_TEXT, "lbvh": lbvh.__version__}
+
+
+def machine_info(ctx: dev.Context, peer_status: dict[str, str]) -> dict:
+    """The machine, the OpenCL device, the library versions and the peers' status."""
+    return {"cpu": cpu_model(), "cores": os.cpu_count(), "platform": platform.platform(),
+            "opencl_device": ctx.name, "device_compute_units": ctx.compute_units,
+            **library_versions(), "peers": peer_status}
+
+
+# -- timing ----------------------------------------------------------------------------
+
+def median(values: list[float]) -> float:
+    """The median as a float; ``nan`` for no values."""
+    return float(statistics.median(values)) if values else float("nan")
+
+
+def timed(fn: Callable[[], Any]) -> tuple[float, Any]:
+    """``(wall seconds, fn())``."""
+    t0 = time.perf_counter()
+    out = fn()
+    return time.perf_counter() - t0, out
+
+
+def cores_used(cpu: list[float], wall: list[float]) -> float:
+    """Process CPU seconds over wall seconds: about the number of busy cores."""
+    return float(sum(cpu) / sum(wall)) if sum(wall) > 0 else 0.0
+
+
+def interleaved_rounds(contestants: list[Any], repeats: int, budget: float,
+                       spent: Callable[[Any], float], run: Callable[[Any], None],
+                       progress: "Progress", what: str) -> None:
+    """``repeats`` rounds, each running every contestant (anything with a
+    ``variant.name``) once, so that the machine's noise hits all of them alike; a
+    contestant that has spent ``budget`` seconds sits out the later rounds (it
+    always runs once)."""
+    for r in range(repeats):
+        for c in contestants:
+            if r and spent(c) >= budget:
+                continue
+            progress.note(f"{c.variant.name} {what} {r + 1}/{repeats}")
+            run(c)
+        progress.advance()
+
+
+class Progress:
+    """A one-line text progress bar on stderr (a line per step when not a terminal)."""
+
+    def __init__(self, total: int, stream=sys.stderr) -> None:
+        self.total, self.done, self.stream = max(total, 1), 0, stream
+        self.start = time.perf_counter()
+        self.label = ""
+        self.tty = stream.isatty()
+
+    def begin(self, label: str) -> None:
+        self.label = label
+        self.note("")
+
+    def note(self, step: str) -> None:
+        width = 24
+        filled = int(width * self.done / self.total)
+        bar = "#" * filled + "-" * (width - filled)
+        text = (f"[{bar}] {self.done}/{self.total} {time.perf_counter() - self.start:6.0f} s  "
+                f"{self.label} {step}")
+        if self.tty:
+            self.stream.write("\r" + text.ljust(100)[:100])
+        else:
+            self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def advance(self) -> None:
+        self.done += 1
+
+    def close(self) -> None:
+        self.note("done")
+        if self.tty:
+            self.stream.write("\n")
+
+
+# -- command line and report of the benches that trace camera rays ------------------------
+
+def parse_rays(text: str) -> tuple[int, int]:
+    """``"512x384"`` -> ``(512, 384)``."""
+    try:
+        w, h = (int(x) for x in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--rays: {text!r}, expected WIDTHxHEIGHT") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"--rays: {text!r}, both sides must be positive")
+    return w, h
+
+
+def add_scene_options(p: argparse.ArgumentParser, quick_scenes: Sequence[str],
+                      full_scenes: Sequence[str], quick_rays: tuple[int, int],
+                      full_rays: tuple[int, int]) -> None:
+    """--quick, --scenes and --rays."""
+    p.add_argument("--quick", action="store_true",
+                   help=f"CI mode: {', '.join(quick_scenes)} at {quick_rays[0]}x{quick_rays[1]} rays")
+    p.add_argument("--scenes", nargs="+", metavar="NAME",
+                   help=f"scenes (comma or space separated) from: {', '.join(known_scenes())}; "
+                        f"default {','.join(full_scenes)}")
+    p.add_argument("--rays", type=parse_rays, help="primary rays WIDTHxHEIGHT per scene "
+                   f"(default {full_rays[0]}x{full_rays[1]}, quick {quick_rays[0]}x{quick_rays[1]})")
+
+
+def add_run_options(p: argparse.ArgumentParser) -> None:
+    """--no-peers, --device, --shared and --out."""
+    p.add_argument("--no-peers", action="store_true", help="skip Embree and warp")
+    p.add_argument("--device", default=None, help="OpenCL device (default: $LBVH_DEVICE or PoCL)")
+    p.add_argument("--shared", type=Path, default=SHARED_SCENES, help="folder of the shared scenes")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output folder (default bench/out)")
+
+
+def resolve_scenes(p: argparse.ArgumentParser, args: argparse.Namespace,
+                   quick_scenes: Sequence[str], full_scenes: Sequence[str],
+                   quick_rays: tuple[int, int], full_rays: tuple[int, int]) -> None:
+    """Set ``args.scene_names`` and ``args.size`` from --scenes, --rays and --quick."""
+    names = [n for item in (args.scenes or []) for n in item.split(",") if n]
+    unknown = [n for n in names if n not in known_scenes()]
+    if unknown:
+        p.error(f"--scenes: unknown scene {unknown[0]!r}; known: {', '.join(known_scenes())}")
+    args.scene_names = names or list(quick_scenes if args.quick else full_scenes)
+    args.size = args.rays or (quick_rays if args.quick else full_rays)
+
+
+def command_line(script: str, argv: list[str] | None) -> str:
+    """The command that ran ``bench/<script>`` with ``argv`` (default: this process's)."""
+    return " ".join([f".venv/bin/python bench/{script}", *(sys.argv[1:] if argv is None else argv)])
+
+
+def report_start(command: str, ctx: dev.Context, peer_status: dict[str, str]) -> dict:
+    """The first fields of a report: the command, the date (now) and the machine."""
+    return {"command": command,
+            "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "machine": machine_info(ctx, peer_status)}
+
+
+def header_lines(report: dict) -> list[str]:
+    """The Markdown lines under a report's title: command, run time, machine, peers."""
+    m = report["machine"]
+    return [f"Command: `{report['command']}`  ",
+            f"Run time: {report['duration_seconds']:.0f} s on {m['cpu']}, {m['cores']} cores; "
+            f"OpenCL device: {m['opencl_device']}.  ",
+            f"Peers: {', '.join(m['peers'].values())}.  "]
+
+
+def write_report(report: dict, text: str, paths: dict[str, Path], out: Path) -> None:
+    """The Markdown ``text`` and the JSON ``report`` to ``paths``, the text to stdout."""
+    paths["markdown"].write_text(text)
+    paths["json"].write_text(json.dumps(report, indent=1, allow_nan=False) + "\n")
+    print(text)
+    print(f"[bench] written to {out}", file=sys.stderr)

@@ -1,0 +1,127 @@
+"""The entry points: ``lbvh.build``, ``lbvh.load`` and ``lbvh.collapse_leaves``.
+
+Each checks everything it is given (mesh, options, device) before anything
+is uploaded, runs a builder (:mod:`lbvh.builders`) and wraps the tree it
+returns in a :class:`lbvh.BVH`.
+"""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import device as dev
+from .builders import pipeline, sah
+from .builders.collapse import collapse
+from .builders.options import CollapseOptions, LBVHOptions, SAHOptions, make, options_from
+from .bvh import SAVE_FORMAT_VERSION, BVH
+from .layout import NODE_DTYPE
+from .mesh import as_mesh
+from .tree import Mesh
+
+
+def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: Any = None,
+          collapse: bool | CollapseOptions = False,
+          options: LBVHOptions | SAHOptions | None = None, **fields: Any) -> BVH:
+    """Build a BVH over a triangle mesh: the device LBVH, or the serial SAH reference.
+
+    Args:
+        vertices: ``(V, 3)`` float coordinates, or a ``trimesh.Trimesh`` (then no ``faces``).
+        faces: ``(F, 3)`` integer vertex indices.
+        builder: ``"lbvh"`` (device, Karras 2012) or ``"sah"`` (serial full-sweep SAH on
+            the host, the reference).
+        device: a device name (see :mod:`lbvh.device`), a ``pyopencl.Device``, or
+            ``None`` for ``$LBVH_DEVICE`` / PoCL's CPU device.
+        collapse: ``"lbvh"`` only: ``True`` or a :class:`lbvh.CollapseOptions`: after the
+            build, merge subtrees into leaves where the SAH says testing their triangles
+            is cheaper (:mod:`lbvh.builders.collapse`).
+        options: the builder's options as data, :class:`lbvh.LBVHOptions` or
+            :class:`lbvh.SAHOptions` (defaults documented there).
+        fields: the same fields as keywords: for ``"lbvh"`` those of ``LBVHOptions``
+            (``key_bits`` 30, 63 or ``"auto"``; ``auto_duplicate_fraction``;
+            ``treelet_rounds``) and, with ``collapse=True``, those of
+            ``CollapseOptions`` (``c_node``, ``c_tri``, ``max_leaf_size``); for
+            ``"sah"`` those of ``SAHOptions``.
+
+    Returns:
+        :class:`lbvh.BVH` whose buffers stay on the device. ``bvh.report()``
+        gives the phase timings and tree statistics.
+
+    Raises:
+        ValueError: bad mesh (NaN/inf, out-of-range indices, non-triangles, empty,
+            wrong shape or dtype) or bad option; nothing is built.
+    """
+    build_options, collapse_options = options_from(builder, collapse, dict(fields), options)
+    v, f = as_mesh(vertices, faces)
+    ctx = dev.get_context(device)
+    if builder == "lbvh":
+        pipeline.check_fits(ctx, len(f))
+    with ctx.lock:   # one call's commands at a time on the context's queue
+        t0 = time.perf_counter()
+        mesh = Mesh.upload(ctx, v, f)
+        ctx.queue.finish()
+        upload = time.perf_counter() - t0
+        if builder == "sah":
+            tree = sah.build_tree(ctx, mesh, build_options)
+            tree.report.upload_seconds += upload
+            return BVH(mesh, tree)
+        return _build_lbvh(ctx, mesh, upload, build_options, collapse_options)
+
+
+def _build_lbvh(ctx: dev.Context, mesh: Mesh, upload: float, options: LBVHOptions,
+                collapse_options: CollapseOptions | None) -> BVH:
+    with ctx.memory.scope() as mem:   # every buffer of the build, the collapse's too
+        tree = pipeline.build_tree(ctx, mesh, options, mem)
+        tree.report.upload_seconds = upload
+        if collapse_options is not None:
+            built = tree
+            tree = collapse(built, collapse_options, mem)
+            ctx.memory.give_back(built.buffers())   # the uncollapsed tree is not kept
+        mem.close()
+    return BVH(mesh, tree)
+
+
+def collapse_leaves(bvh: BVH, **options: Any) -> BVH:
+    """A new BVH whose leaves are the subtrees of ``bvh`` that the SAH prefers as leaves.
+
+    ``options``: the fields of :class:`~lbvh.builders.options.CollapseOptions`
+    (``c_node``, ``c_tri``, ``max_leaf_size``). ``bvh`` is not modified; the
+    new tree shares its mesh, its builder is ``"<builder>+collapse"`` and its
+    report adds a ``collapse`` phase. Raises ``ValueError`` on a bad or
+    unknown option.
+    """
+    opts = make(CollapseOptions, options, "the leaf collapse")
+    with bvh.ctx.lock:
+        return BVH(bvh.mesh, collapse(bvh.tree, opts))
+
+
+def load(path: str | os.PathLike, device: Any = None) -> BVH:
+    """Read a tree written by :meth:`BVH.save` and upload it to the device."""
+    path = Path(path)
+    try:
+        data = np.load(path, allow_pickle=False)
+    except Exception as exc:  # OSError, ValueError, zipfile.BadZipFile, EOFError...
+        raise ValueError(f"{path}: not a saved lbvh BVH ({type(exc).__name__}: {exc})") from None
+    with data:
+        missing = {"format_version", "nodes", "prim_order", "root", "vertices", "faces"} - set(data.files)
+        if missing:
+            raise ValueError(f"{path}: not a saved lbvh BVH (missing {sorted(missing)})")
+        if int(data["format_version"]) != SAVE_FORMAT_VERSION:
+            raise ValueError(f"{path}: format version {int(data['format_version'])}, "
+                             f"this lbvh reads {SAVE_FORMAT_VERSION}")
+        nodes = data["nodes"]
+        if nodes.dtype != NODE_DTYPE:
+            raise ValueError(f"{path}: nodes have dtype {nodes.dtype}, expected {NODE_DTYPE}")
+        builder = str(data["builder"]) if "builder" in data.files else "loaded"
+        try:
+            bvh = BVH.from_arrays(nodes, data["prim_order"], int(data["root"]), data["vertices"],
+                                  data["faces"], builder=builder, device=device)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+    return bvh
+
+
+__all__ = ["build", "load", "collapse_leaves", "LBVHOptions", "SAHOptions", "CollapseOptions"]

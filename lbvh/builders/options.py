@@ -1,0 +1,157 @@
+"""Options of the builders and optimisers, as data with documented defaults.
+
+Each builder and optimiser takes one frozen options object; its fields are
+checked when it is made, so a bad value is refused before anything is
+uploaded. :func:`options_from` turns ``lbvh.build``'s keyword arguments into
+them: the one place where an unknown name is refused.
+
+=============================  =====================================================
+options                        for
+=============================  =====================================================
+:class:`LBVHOptions`           ``builder="lbvh"``: the device pipeline (Karras 2012)
+                               and its treelet restructuring (Karras & Aila 2013)
+:class:`SAHOptions`            ``builder="sah"``: the serial full-sweep SAH reference
+:class:`CollapseOptions`       ``collapse=True``: the leaf collapse after an LBVH build
+=============================  =====================================================
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .cost import C_NODE, C_TRI, MAX_LEAF_SIZE, check_sah_constants
+from .morton import AUTO_DUPLICATE_FRACTION
+from .restructure import check_rounds
+
+#: ``key_bits`` as the caller gives it -> bits of a key (``None``: chosen per mesh).
+KEY_CHOICES = {"auto": None, 30: 32, 63: 64, "30": 32, "63": 64}
+
+BUILDERS = ("lbvh", "sah")
+
+
+@dataclass(frozen=True)
+class LBVHOptions:
+    """The device LBVH build.
+
+    Attributes:
+        key_bits: ``30`` (``uint32`` keys), ``63`` (``uint64`` keys) or ``"auto"``
+            (default): 30 bits unless more than ``auto_duplicate_fraction`` of the
+            30-bit codes are duplicates.
+        auto_duplicate_fraction: the threshold of ``"auto"`` (default 0.5).
+        treelet_rounds: rounds of treelet restructuring after the refit (default 0:
+            the Karras 2012 tree); each lowers the SAH cost for a longer build.
+    """
+    key_bits: int | str = "auto"
+    auto_duplicate_fraction: float = AUTO_DUPLICATE_FRACTION
+    treelet_rounds: int = 0
+
+    def __post_init__(self) -> None:
+        try:
+            KEY_CHOICES[self.key_bits]
+        except (KeyError, TypeError):
+            raise ValueError(f"key_bits: {self.key_bits!r}; expected 30, 63 or 'auto'") from None
+        check_rounds(self.treelet_rounds)
+
+    @property
+    def wanted_bits(self) -> int | None:
+        """Bits of a key asked for (32 or 64), or ``None`` for ``"auto"``."""
+        return KEY_CHOICES[self.key_bits]
+
+
+@dataclass(frozen=True)
+class SAHOptions:
+    """The serial SAH reference: cost of a node visit ``c_node`` (default
+    :data:`~lbvh.builders.cost.C_NODE`), of a triangle test ``c_tri``
+    (:data:`~lbvh.builders.cost.C_TRI`), largest leaf ``max_leaf_size``
+    (:data:`~lbvh.builders.cost.MAX_LEAF_SIZE`; bigger nodes are always split)."""
+    c_node: float = C_NODE
+    c_tri: float = C_TRI
+    max_leaf_size: int = MAX_LEAF_SIZE
+
+    def __post_init__(self) -> None:
+        check_sah_constants(self.c_node, self.c_tri, self.max_leaf_size)
+
+
+@dataclass(frozen=True)
+class CollapseOptions:
+    """The leaf collapse: the same SAH constants as :class:`SAHOptions`;
+    ``max_leaf_size`` is the largest leaf it makes (existing leaves stay)."""
+    c_node: float = C_NODE
+    c_tri: float = C_TRI
+    max_leaf_size: int = MAX_LEAF_SIZE
+
+    def __post_init__(self) -> None:
+        check_sah_constants(self.c_node, self.c_tri, self.max_leaf_size)
+
+
+def field_names(cls: type) -> set[str]:
+    return {f.name for f in dataclasses.fields(cls)}
+
+
+def make(cls: type, given: dict[str, Any], what: str) -> Any:
+    """``cls(**given)``, refusing unknown names with ``what`` in the message."""
+    unknown = set(given) - field_names(cls)
+    if unknown:
+        raise ValueError(f"unknown option(s) for {what}: {', '.join(sorted(unknown))}")
+    return cls(**given)
+
+
+def options_from(builder: str, collapse: "bool | CollapseOptions", given: dict[str, Any],
+                 options: "LBVHOptions | SAHOptions | None" = None
+                 ) -> tuple[LBVHOptions | SAHOptions, CollapseOptions | None]:
+    """The options objects of ``lbvh.build(builder=..., collapse=..., options=..., **given)``.
+
+    ``options`` (an options object of the builder) and ``collapse`` (``True``
+    or a :class:`CollapseOptions`) may be given as data; otherwise, with
+    ``builder="lbvh"`` the names of :class:`LBVHOptions` in ``given`` go to
+    the build and, with ``collapse``, the others to :class:`CollapseOptions`;
+    with ``builder="sah"`` all go to :class:`SAHOptions`. Raises ``ValueError``
+    on an unknown builder or name, a bad value, an option of the other builder,
+    or the same option given both ways.
+    """
+    if builder not in BUILDERS:
+        raise ValueError(f"builder: {builder!r}; expected one of {', '.join(BUILDERS)}")
+    expected = LBVHOptions if builder == "lbvh" else SAHOptions
+    if options is not None:
+        if not isinstance(options, expected):
+            raise ValueError(f"options: {type(options).__name__} given; builder={builder!r} "
+                             f"takes {expected.__name__}")
+        clash = set(given) & field_names(expected)
+        if clash:
+            raise ValueError(f"{', '.join(sorted(clash))}: given both in options and as a "
+                             "keyword")
+        given = {**{f.name: getattr(options, f.name) for f in dataclasses.fields(options)},
+                 **given}
+    if isinstance(collapse, CollapseOptions):
+        if builder == "sah":
+            raise ValueError("collapse: only for builder='lbvh' (the SAH builder already makes "
+                             "multi-triangle leaves)")
+        own = LBVHOptions(**{k: v for k, v in given.items() if k in field_names(LBVHOptions)})
+        rest = set(given) - field_names(LBVHOptions)
+        if rest:
+            raise ValueError(f"unknown option(s) for the lbvh builder: {', '.join(sorted(rest))} "
+                             "(the collapse's options are in collapse=CollapseOptions(...))")
+        return own, collapse
+    if not isinstance(collapse, (bool, np.bool_)):
+        raise ValueError(f"collapse: {collapse!r}; expected True, False or a CollapseOptions")
+    if builder == "sah":
+        if collapse:
+            raise ValueError("collapse: only for builder='lbvh' (the SAH builder already makes "
+                             "multi-triangle leaves)")
+        # the LBVH's own options are checked, and have no effect on the reference
+        lbvh_only = LBVHOptions(**{k: given.pop(k) for k in field_names(LBVHOptions) & set(given)})
+        if lbvh_only.treelet_rounds:
+            raise ValueError("treelet_rounds: only for builder='lbvh' (the SAH builder's tree "
+                             "is the reference)")
+        return make(SAHOptions, given, "the sah builder"), None
+    own = {k: v for k, v in given.items() if k in field_names(LBVHOptions)}
+    rest = {k: v for k, v in given.items() if k not in own}
+    options = LBVHOptions(**own)
+    if not collapse:
+        if rest:
+            raise ValueError(f"unknown option(s) for the lbvh builder: {', '.join(sorted(rest))}")
+        return options, None
+    return options, make(CollapseOptions, rest, "the leaf collapse")

@@ -1,0 +1,212 @@
+"""Treelet restructuring on the device (kernels/restructure.cl): better trees from the LBVH.
+
+Karras & Aila 2013 rebuild every small subtree (a *treelet* of up to seven
+leaves) with the topology of least SAH cost, bottom-up, in place. The Karras
+2012 tree splits at Morton-code boundaries, which ignores the triangles'
+sizes; a round of restructuring takes most of the gap to a full SAH build
+(bench/bench_builders.py measures it) for a fraction of the build time.
+
+Works on any tree in the project's layout: only internal nodes change
+(children, boxes, parent links); leaves, slots and ``prim_order`` stay, so the
+root stays where it was and the tree still validates. Subtrees stop being
+contiguous runs of slots, which the leaf collapse takes into account.
+
+:func:`restructure_python` is the serial twin: the same treelets in post
+order, the same float32 operations, bit for bit.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pyopencl as cl
+
+from ..device import Context, Scope, run
+from ..tree import Tree
+from ..layout import NODE_DTYPE
+from .cost import C_NODE, C_TRI
+from .refit import clear_arrivals
+
+KERNEL_FILE = "restructure.cl"
+#: Leaves per treelet (Karras & Aila 2013 use 7; 2**7 subsets fit in private memory).
+TREELET_LEAVES = 7
+
+
+def restructure_treelets(ctx: Context, nodes: cl.Buffer, parent: cl.Buffer, cost: cl.Buffer,
+                         arrivals: cl.Buffer, num_nodes: int, root: int, rounds: int,
+                         leaf_first: int, num_leaves: int, leaf_nodes: cl.Buffer | None = None,
+                         c_node: float = C_NODE, c_tri: float = C_TRI) -> list[cl.Event]:
+    """``rounds`` bottom-up restructuring passes over a tree whose boxes are final.
+
+    ``cost`` (``float32`` per node) and ``arrivals`` (``int32`` per node) are
+    scratch. Leaves are ``leaf_first ..`` (Karras numbering) or ``leaf_nodes``.
+    """
+    events = []
+    launch = ctx.launch(num_leaves, min_per_item=256)
+    use_list = leaf_nodes is not None
+    for _ in range(rounds):
+        events.append(clear_arrivals(ctx, arrivals, num_nodes))
+        events.append(run(ctx, KERNEL_FILE, "restructure_treelets", launch, nodes, parent, cost,
+                          arrivals, leaf_nodes if use_list else arrivals, use_list, leaf_first,
+                          num_leaves, launch.per_item, root, np.float32(c_node),
+                          np.float32(c_tri), defines={"TREELET_LEAVES": TREELET_LEAVES}))
+    return events
+
+
+def restructure(tree: Tree, rounds: int, mem: Scope, c_node: float = C_NODE,
+                c_tri: float = C_TRI) -> tuple[Tree, list[cl.Event]]:
+    """The optimiser: ``rounds`` of treelet restructuring of ``tree`` in place (its
+    boxes final); returns the tree, renamed ``<builder>+treelets<rounds>``, and
+    the events. Scratch comes from ``mem``."""
+    if not rounds:
+        return tree, []
+    cost = mem.alloc(4 * tree.num_nodes, scratch=True)
+    arrivals = mem.alloc(4 * tree.num_nodes, scratch=True)
+    leaf_list, leaf_first, num_leaves = tree.leaf_walks()
+    events = restructure_treelets(tree.ctx, tree.nodes, tree.parent, cost, arrivals, tree.num_nodes,
+                                  tree.root, rounds, leaf_first, num_leaves, leaf_list, c_node,
+                                  c_tri)
+    mem.free(cost, arrivals)
+    return dataclasses.replace(tree, builder=f"{tree.builder}+treelets{rounds}"), events
+
+
+def check_rounds(rounds: object) -> int:
+    """The number of restructuring rounds as an int >= 0, or a ValueError naming it."""
+    if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 0:
+        raise ValueError(f"treelet_rounds: {rounds!r}; expected an integer >= 0")
+    return int(rounds)
+
+
+# -- pure Python twin ---------------------------------------------------------------
+
+def _box_scale(lo: np.ndarray, hi: np.ndarray) -> np.float32:
+    """Kernel box_scale (common.h): 2**-e for the exponent of the largest |coordinate|."""
+    m = np.float32(max(np.abs(lo).max(), np.abs(hi).max()))
+    e = min(max(int((m.view(np.int32) >> 23) & 0xFF) - 126, -126), 126)
+    return np.int32((127 - e) << 23).view(np.float32)
+
+
+def _half_area(lo: np.ndarray, hi: np.ndarray, s: np.float32) -> np.float32:
+    d = hi * s - lo * s
+    return d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
+
+
+class _Treelets:
+    """Serial restructuring of one tree held in host arrays (modified in place)."""
+
+    def __init__(self, nodes: np.ndarray, parent: np.ndarray, root: int,
+                 c_node: float, c_tri: float) -> None:
+        self.nodes, self.parent = nodes, parent
+        self.lo, self.hi = nodes["lower"], nodes["upper"]
+        self.scale = _box_scale(self.lo[root], self.hi[root])
+        self.c_node = np.float32(c_node)
+        self.cost = np.zeros(len(nodes), np.float32)
+        leaves = np.flatnonzero(nodes["b"] < 0)
+        with np.errstate(over="ignore", under="ignore"):
+            for x in leaves:
+                count = np.float32(-nodes["b"][x])
+                self.cost[x] = np.float32(c_tri) * count * self.area(self.lo[x], self.hi[x])
+
+    def area(self, lo: np.ndarray, hi: np.ndarray) -> np.float32:
+        return _half_area(lo, hi, self.scale)
+
+    def is_internal(self, x: int) -> bool:
+        return self.nodes["b"][x] >= 0
+
+    def children(self, x: int) -> tuple[int, int]:
+        return int(self.nodes["a"][x]), int(self.nodes["b"][x])
+
+    def form(self, root: int) -> tuple[list[int], list[int]]:
+        """Section 4.1: the treelet's leaves and internal nodes (root first)."""
+        leaf = list(self.children(root))
+        area = [self.area(self.lo[x], self.hi[x]) for x in leaf]
+        inner = [root]
+        while len(leaf) < TREELET_LEAVES:
+            grow = -1
+            for i, x in enumerate(leaf):
+                if self.is_internal(x) and (grow < 0 or area[i] > area[grow]):
+                    grow = i
+            if grow < 0:
+                break
+            x = leaf[grow]
+            inner.append(x)
+            left, right = self.children(x)
+            leaf[grow], area[grow] = left, self.area(self.lo[left], self.hi[left])
+            leaf.append(right)
+            area.append(self.area(self.lo[right], self.hi[right]))
+        return leaf, inner
+
+    def restructure(self, root: int) -> None:
+        leaf, inner = self.form(root)
+        full = (1 << len(leaf)) - 1
+        sub_lo, sub_hi = [None] * (full + 1), [None] * (full + 1)
+        sub_cost = [np.float32(0)] * (full + 1)
+        split = [0] * (full + 1)
+        for s in range(1, full + 1):
+            low = s & -s
+            rest = s ^ low
+            if rest == 0:
+                x = leaf[low.bit_length() - 1]
+                sub_lo[s], sub_hi[s], sub_cost[s] = self.lo[x], self.hi[x], self.cost[x]
+                continue
+            sub_lo[s] = np.minimum(sub_lo[rest], sub_lo[low])
+            sub_hi[s] = np.maximum(sub_hi[rest], sub_hi[low])
+            best, best_p, p = np.float32(np.inf), rest, 0
+            while True:
+                p = (p - rest) & rest
+                c = sub_cost[s ^ p] + sub_cost[p]
+                if c < best:
+                    best, best_p = c, p
+                if p == rest:
+                    break
+            split[s] = best_p
+            sub_cost[s] = self.c_node * self.area(sub_lo[s], sub_hi[s]) + best
+        stack, next_inner = [(full, root)], 1
+        while stack:
+            s, node = stack.pop()
+            kids = []
+            for part in (s ^ split[s], split[s]):
+                if part & (part - 1) == 0:
+                    kid = leaf[part.bit_length() - 1]
+                else:
+                    kid = inner[next_inner]
+                    next_inner += 1
+                    stack.append((part, kid))
+                self.parent[kid] = node
+                kids.append(kid)
+            self.lo[node], self.hi[node] = sub_lo[s], sub_hi[s]
+            self.nodes["a"][node], self.nodes["b"][node] = kids
+            self.cost[node] = sub_cost[s]
+
+    def run(self, root: int) -> None:
+        """One round: every internal node after both of its subtrees (post order)."""
+        order, stack = [], [(root, False)]
+        while stack:
+            x, children_done = stack.pop()
+            if not self.is_internal(x):
+                continue
+            if children_done:
+                order.append(x)
+                continue
+            stack.append((x, True))
+            left, right = self.children(x)
+            stack += [(right, False), (left, False)]
+        with np.errstate(over="ignore", under="ignore"):
+            for x in order:
+                self.restructure(x)
+
+
+def restructure_python(nodes: np.ndarray, parent: np.ndarray, root: int, rounds: int = 1,
+                       c_node: float = C_NODE, c_tri: float = C_TRI
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Serial twin of :func:`restructure_treelets` on host copies of a tree with final boxes.
+
+    Returns new ``nodes`` (:data:`NODE_DTYPE`) and ``parent`` (``int32``); the
+    inputs are not modified.
+    """
+    nodes = np.array(nodes, dtype=NODE_DTYPE, copy=True)
+    parent = np.array(parent, dtype=np.int32, copy=True)
+    work = _Treelets(nodes, parent, root, c_node, c_tri)
+    for _ in range(rounds):
+        work.run(root)
+    return work.nodes, work.parent

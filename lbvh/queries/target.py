@@ -1,0 +1,29 @@
+"""What a query needs of the tree it runs on: the one interface of :class:`lbvh.BVH`
+that the query modules see (they never import the facade, which imports them)."""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Protocol
+
+import pyopencl as cl
+
+from ..device import Context
+from ..tree import Mesh, Tree
+
+if TYPE_CHECKING:
+    from .wide import Wide
+
+
+class QueryTarget(Protocol):
+    """A tree with its mesh and its query caches (:class:`lbvh.BVH` is one)."""
+    ctx: Context
+    tree: Tree
+    mesh: Mesh
+
+    def wide_records(self, width: int | None = None, max_bytes: int | None = None) -> "Wide":
+        """The tree's wide records (:func:`lbvh.queries.wide.make_wide`), cached."""
+
+    def slot_faces(self) -> cl.Buffer:
+        """The faces in slot order (:func:`lbvh.queries.traverse.order_faces`), cached."""
+
+    def traversal_depth(self) -> int:
+        """The tree's depth (0 for a root leaf), cached."""

@@ -1,0 +1,58 @@
+"""The float32 error bound on a hit's ``t``: one home for the checks, the tests and the benches.
+
+The traversal kernel computes ``t`` in float32 from coordinates relative to
+the ray's origin (kernels/traverse.cl: Woop, Benthin & Wald 2013, with the
+shear scaled by ``d_kz``). Each of its results carries a few roundings of
+unit roundoff ``U = 2^-24`` (Higham 2002, ch. 3) on quantities of the size of
+the coordinates it subtracts; dividing by the triangle's projected area
+amplifies them by ``1 / |cos a|``, ``a`` the angle between the ray and the
+triangle's normal. So, against the float64 oracle's ``t_ref`` for the same
+triangle::
+
+    |t - t_ref| <= T_BOUND * (t_ref + s) / max(|cos a|, cos_floor)
+
+with ``T_BOUND = 16 U`` and ``s = (scene extent + largest origin component)
+/ |d|``. ``cos_floor`` only keeps the quotient finite (``1e-30``); the
+builders bench floors it at ``1e-3`` on purpose, a stricter agreement test
+for grazing rays, and says so in its table.
+
+Below float32's normal range rounding is absolute: :data:`UNDERFLOW` is the
+floor the finer, per-pair analysis of :mod:`lbvh.verification.error_analysis`
+adds (that analysis, which ``lbvh check`` judges by, uses the same ``T_BOUND``
+with each pair's own size and conditioning: its module docstring says how the
+two bounds relate).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: Unit roundoff of float32.
+U = 2.0 ** -24
+#: Relative bound on ``t`` in units of ``(t_ref + s) / |cos a|``: 16 roundings.
+T_BOUND_ULPS = 16
+T_BOUND = T_BOUND_ULPS * U
+#: Absolute error floor of float32 results that underflow (2^9 of the smallest denormal).
+UNDERFLOW = 2.0 ** -140
+#: The default floor of ``|cos a|``: only keeps the quotient finite.
+COS_FLOOR = 1e-30
+
+
+def t_bound(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarray, directions: np.ndarray,
+            t_ref: np.ndarray, prim_ref: np.ndarray, cos_floor: float = COS_FLOOR) -> np.ndarray:
+    """``float64 (N,)``: the bound of the module docstring on ``|t - t_ref|`` per ray.
+
+    ``prim_ref`` is the triangle the bound is for (the oracle's, ``-1`` on a
+    miss: the bound is then computed for triangle 0 and meaningless);
+    ``t_ref`` its ``t`` (non-finite values count as 0).
+    """
+    d = np.asarray(directions, np.float64)
+    dn = np.linalg.norm(d, axis=1)
+    extent = float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
+    s = (extent + np.abs(origins).max(axis=1)) / dn
+    tri = vertices[faces[np.maximum(prim_ref, 0)]].astype(np.float64)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nn = np.linalg.norm(normal, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos = np.abs((normal * d).sum(axis=1)) / np.maximum(nn * dn, 1e-300)
+    t = np.where(np.isfinite(t_ref), t_ref, 0.0)
+    return T_BOUND * (t + s) / np.maximum(cos, cos_floor)

@@ -1,0 +1,195 @@
+"""Every (kernel file, -D defines) combination the package compiles.
+
+:func:`lbvh.device.Context.program` compiles a kernel file once per set of
+defines; this module lists, for a CPU or a GPU device, every set that the
+package's modules can ask for, with the values taken from the modules' own
+constants and functions (the stack buckets of :mod:`lbvh.traverse`, the
+record widths of :mod:`lbvh.wide`, the digit widths of :mod:`lbvh.sort`, ...),
+so that a check of every variant (build logs, other compilers, other targets)
+follows the package when it changes. ``tests/device/test_build_logs.py`` and
+``tests/verification/test_portability.py`` compile them; a test records what a
+representative set of public calls compiles and checks that it is in this
+list.
+
+Only the package's own choices are listed: the overrides that exist for tests
+and experiments (``trace_buffers(defines=...)``, ``intersect(stack_size=...)``
+beyond the buckets, ``radix_sort(radix_bits=...)`` other than the package's
+two digit widths) are not.
+
+A variant is a ``(filename, defines)`` pair, ``defines`` a dict sorted by name
+as :meth:`lbvh.device.Context.program` sorts it; :func:`variant_key` makes it
+hashable the way the program cache does.
+"""
+from __future__ import annotations
+
+import inspect
+import itertools
+import re
+from types import SimpleNamespace
+from typing import Iterable
+
+import pyopencl as cl
+
+from ..builders import bounds
+from ..builders import collapse
+from ..builders import emit
+from ..builders import morton
+from ..queries import ray_order
+from ..builders import refit
+from ..builders import restructure
+from ..device import sort
+from ..queries import traverse
+from ..queries import wide
+
+Defines = dict[str, int | str]
+Variant = tuple[str, Defines]
+
+
+def variant_key(filename: str, defines: Defines | None) -> tuple[str, tuple]:
+    """The hashable key of a variant: as lbvh.device.Context.program caches it."""
+    return filename, tuple(sorted((defines or {}).items()))
+
+
+def _default(function, name: str):
+    return inspect.signature(function).parameters[name].default
+
+
+def _fake_ctx(is_cpu: bool, exact_divide: bool, compiler_is_clang: bool) -> SimpleNamespace:
+    """What the modules' define choosers read of a Context, for a device of this kind."""
+    fp = cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT if exact_divide else 0
+    return SimpleNamespace(is_cpu=is_cpu, compiler_is_clang=compiler_is_clang,
+                           device=SimpleNamespace(single_fp_config=fp))
+
+
+def _choices(value: bool | None) -> tuple[bool, ...]:
+    return (False, True) if value is None else (bool(value),)
+
+
+def _product(**axes: Iterable) -> list[Defines]:
+    names = sorted(axes)
+    return [dict(zip(names, values)) for values in itertools.product(*(axes[n] for n in names))]
+
+
+def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
+                    compiler_is_clang: bool | None = None) -> list[Variant]:
+    """Every (kernel file, defines) the package compiles on a CPU (``is_cpu``) or
+    GPU device.
+
+    ``exact_divide``: whether the device has correctly rounded float32
+    division (it sets traverse.cl's ``SLAB_PAD``); ``compiler_is_clang``:
+    whether the platform compiles with clang (PoCL: refit.cl's
+    ``CLANG_PREFETCH``). ``None`` (the default) lists both values: every
+    device of that kind. :func:`variants_for` gives one context's list.
+    """
+    ctxs = [_fake_ctx(is_cpu, d, c) for d in _choices(exact_divide)
+            for c in _choices(compiler_is_clang)]
+    out: dict[tuple, Variant] = {}
+
+    def add(filename: str, defines: Defines) -> None:
+        defines = dict(sorted(defines.items()))
+        out.setdefault(variant_key(filename, defines), (filename, defines))
+
+    key_bits = sorted(morton.KEY_DTYPE)                         # 32- and 64-bit keys
+    add(bounds.KERNEL_FILE, {})
+    for bits in key_bits:                                       # morton_codes, count_duplicates
+        add(morton.KERNEL_FILE, {"KEY_BITS": bits})
+    # emit_hierarchy: the build leaves the leaves to the refit; the default writes them
+    write_leaves = sorted({int(_default(emit.emit_hierarchy, "write_leaves")), 0})
+    for bits, leaves in itertools.product(key_bits, write_leaves):
+        add(emit.KERNEL_FILE, {"KEY_BITS": bits, "WRITE_LEAVES": leaves})
+    # sort.cl: key_bits (its default digit width) and the passes (the device's width)
+    default_radix = _default(sort.kernel_defines, "radix_bits")
+    for ctx in ctxs:
+        for bits in key_bits:
+            for radix in sorted({default_radix, sort.radix_bits_for(ctx)}):
+                add(sort.KERNEL_FILE, sort.kernel_defines(bits, ctx.is_cpu, radix))
+    # refit.cl: clear_arrivals (no defines) and refit
+    add(refit.KERNEL_FILE, {})
+    for ctx in ctxs:
+        for karras in (0, 1):
+            add(refit.KERNEL_FILE, {"KARRAS_RANGES": karras,
+                                    "CLANG_PREFETCH": int(ctx.compiler_is_clang)})
+    add(restructure.KERNEL_FILE, {"TREELET_LEAVES": restructure.TREELET_LEAVES})
+    add(collapse.KERNEL_FILE, {})
+    add(ray_order.KERNEL_FILE, {})
+    for width in wide.WIDTHS:                                   # wide_level, wide_records
+        add(wide.KERNEL_FILE, {"WIDTH": width})
+    # traverse.cl: order_faces (no defines) and traverse
+    add(traverse.KERNEL_FILE, {})
+    for ctx in ctxs:
+        for any_hit, counters, test, stack in itertools.product(
+                (False, True), (False, True), traverse.TRIANGLE_TESTS, traverse.STACK_BUCKETS):
+            base = traverse.kernel_defines(ctx, any_hit, test, counters, stack)
+            # wide records of either width (width_for: 8 on a CPU, 4 elsewhere; both
+            # listed for both kinds, as wide.cl, which bvh.wide_records(width=) compiles for
+            # either), or the binary nodes (WIDE=0, where records would not fit) with
+            # the record width still set
+            for extra in _product(WIDE=(1, 0), WIDTH=wide.WIDTHS, RAY_ORDER=(0, 1)):
+                add(traverse.KERNEL_FILE, {**base, **extra})
+    return list(out.values())
+
+
+def variants_for(ctx) -> list[Variant]:
+    """The variants one :class:`lbvh.device.Context` can compile."""
+    exact = bool(ctx.device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT)
+    return kernel_variants(ctx.is_cpu, exact_divide=exact,
+                           compiler_is_clang=ctx.compiler_is_clang)
+
+
+def conditional_defines(source: str) -> set[str]:
+    """Names tested by the preprocessor (``#if``, ``#elif``, ``#ifdef``,
+    ``defined(...)``) in a kernel source: the defines that select code, as
+    opposed to those that only give a value (an array size, a literal).
+    ``#ifndef NAME`` is left out: the kernels use it for include guards and for
+    a define's default value (``#ifndef X`` / ``#define X ...``), which every
+    variant that passes ``X`` overrides."""
+    names = set()
+    for line in source.splitlines():
+        m = re.match(r"\s*#\s*(if|elif|ifdef)\b(.*)", line)
+        if m:
+            names |= set(re.findall(r"[A-Za-z_]\w*", m.group(2))) - {"defined"}
+    return names
+
+
+def covering_variants(variants: list[Variant], sources: dict[str, str],
+                      value_only: Iterable[str] = ("STACK_SIZE",)) -> list[Variant]:
+    """A subset of ``variants``: every combination of the defines other than
+    ``value_only``, each with one value of the ``value_only`` defines, chosen so
+    that every value of each is compiled at least once.
+
+    ``value_only`` names defines that only give a value (traverse.cl's
+    STACK_SIZE sizes its private stack arrays; SLAB_PAD is a float literal):
+    they multiply the variants without selecting other code. A name that the
+    preprocessor tests in a file's source or in a header of ``sources``
+    (:func:`conditional_defines`) raises ``ValueError``: it selects code, and
+    every one of its values must be compiled with every other combination.
+    """
+    value_only = tuple(value_only)
+    header = "".join(text for name, text in sources.items() if name.endswith(".h"))
+    picked: dict[tuple, Variant] = {}
+    groups: dict[tuple, list[Variant]] = {}
+    for filename, defines in variants:
+        code = (filename, tuple((k, v) for k, v in defines.items() if k not in value_only))
+        groups.setdefault(code, []).append((filename, defines))
+    files = {filename for filename, _ in variants}
+    for filename in sorted(files):
+        tested = conditional_defines(sources[filename] + header) & set(value_only)
+        if tested:
+            raise ValueError(f"{filename}: {', '.join(sorted(tested))} selects code "
+                             "(tested by the preprocessor): not a value-only define")
+
+    def values(v: Variant) -> set[tuple]:
+        return {(v[0], k, val) for k, val in v[1].items() if k in value_only}
+
+    used: dict[tuple, int] = {}   # how often each value-only value was picked: round robin
+    for members in groups.values():
+        best = min(members, key=lambda v: sum(used.get(x, 0) for x in values(v)))
+        picked[variant_key(*best)] = best
+        for x in values(best):
+            used[x] = used.get(x, 0) + 1
+    for members in groups.values():   # values no pick brought (more values than groups)
+        for v in members:
+            if values(v) - set(used):
+                picked[variant_key(*v)] = v
+                used.update((x, 1) for x in values(v))
+    return list(picked.values())

@@ -1,0 +1,415 @@
+"""Brute-force ray/triangle intersection in numpy: the exact oracle of the ray queries.
+
+Every ray is tested against every triangle with the watertight test of Woop,
+Benthin and Wald (JCGT 2013), written once for two precisions. The shear is
+taken times ``d_kz`` as in the kernel (``x = ez p_kx - ex p_kz`` instead of
+``p_kx - Sx p_kz``, see :class:`_Rays`): the same test in exact arithmetic,
+and in either precision a vertex exactly on the ray's line lands exactly on
+it (a ray along an edge is then in the triangle's plane: ``det = 0``, a miss).
+
+``dtype=np.float64`` (the oracle)
+    Coordinates are the caller's float32 values, the arithmetic is float64:
+    ``p - o`` is exact, each later step rounds to 53 bits, so ``t`` and the
+    barycentrics carry a relative error of a few 1e-16 times the conditioning
+    of the hit (``1 / cos`` of the angle between ray and triangle plane); hit
+    or miss can differ from exact arithmetic only for rays within about 1e-15
+    (relative to the coordinates) of a triangle's edge.
+
+``dtype=np.float32`` (the kernel's twin)
+    The same operations in the same order as ``kernels/traverse.cl`` with its
+    default watertight test (including the float64 recomputation of an edge
+    function that rounds to zero, the whole test in float64 for rays whose
+    shear lies below float32's range, the direction scaled by ``2^-texp``,
+    and accept_hit's rule: a hit counts only where the ray enters the
+    triangle's own box by the slab test, its ``t`` raised to that box's
+    entry): for the triangle the kernel reports, its ``t, u, v`` equal the
+    twin's bit for bit on a device with correctly rounded division.
+
+Zero-area triangles are never hit, in both precisions and in the kernel: a
+triangle is degenerate when ``|e1 x e2| <= 2^-20 |e1| |e2|`` (see
+:func:`degenerate_triangles`), which catches repeated vertices and vertices
+collinear up to rounding; the Woop test alone would let rays through the
+line of a collinear triangle hit it.
+
+By default (``cull=True``) ray-triangle pairs whose triangle lies in a block
+of 16 triangles whose box (padded by ``1e-6`` of the scene's scale) the ray
+cannot reach are skipped before the exact test; the padding is a million
+times the float64 rounding of that box test, so culling never changes a
+result (``cull=False`` tests every pair, to check exactly that). Pairs are
+processed in chunks of ``max_pairs`` to bound memory.
+
+Both return :class:`lbvh.queries.traverse.Hits`; among triangles hit at exactly the
+same ``t`` the lowest triangle index wins.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..mesh import as_faces, as_vertices
+from ..queries.traverse import Hits, check_rays
+
+#: Sine of the angle between two edges below which the oracle calls a triangle degenerate.
+DEGENERATE_SINE = 2.0 ** -20
+#: Triangles per culling block, and the blocks' padding relative to the scene's scale.
+BLOCK_SIZE = 16
+BLOCK_PADDING = 1e-6
+
+
+def woop_axes(directions: np.ndarray) -> np.ndarray:
+    """``int64 (N, 3)`` axis permutation (kx, ky, kz) of each ray, as the kernel picks it.
+
+    ``kz`` is the axis of the largest ``|d|`` (ties resolved in the kernel's
+    comparison order); ``kx, ky`` follow cyclically and are swapped when
+    ``d[kz] < 0`` so that the triangle's winding is kept.
+    """
+    ad = np.abs(directions)
+    kz = np.where(ad[:, 0] >= ad[:, 1], np.where(ad[:, 0] >= ad[:, 2], 0, 2),
+                  np.where(ad[:, 1] >= ad[:, 2], 1, 2))
+    kx = (kz + 1) % 3
+    ky = (kx + 1) % 3
+    swap = directions[np.arange(len(directions)), kz] < 0
+    kx, ky = np.where(swap, ky, kx), np.where(swap, kx, ky)
+    return np.stack([kx, ky, kz], axis=1).astype(np.int64)
+
+
+def degenerate_triangles(vertices: np.ndarray, faces: np.ndarray, dtype=np.float64) -> np.ndarray:
+    """``bool (F,)``: zero-area triangles, as the kernel decides it (in ``dtype``).
+
+    ``|e1 x e2| <= 2^-20 |e1| |e2|`` with ``e1 = p1 - p0``, ``e2 = p2 - p0``
+    each scaled to a largest component of 1; an edge of length zero is
+    degenerate. Same operations, same order as ``degenerate()`` in the kernel.
+    """
+    p = vertices[faces].astype(dtype) * dtype(0.5)  # halved: the edges cannot overflow
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    s1, s2 = np.abs(e1).max(axis=1), np.abs(e2).max(axis=1)
+    zero = (s1 == 0) | (s2 == 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a, b = e1 / s1[:, None], e2 / s2[:, None]
+        n = np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                      a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+        nn = (n[:, 0] * n[:, 0] + n[:, 1] * n[:, 1]) + n[:, 2] * n[:, 2]
+        aa = (a[:, 0] * a[:, 0] + a[:, 1] * a[:, 1]) + a[:, 2] * a[:, 2]
+        bb = (b[:, 0] * b[:, 0] + b[:, 1] * b[:, 1]) + b[:, 2] * b[:, 2]
+        return zero | (nn <= dtype(DEGENERATE_SINE) ** 2 * aa * bb)
+
+
+#: make_ray's range of directions (kernels/traverse.cl): a direction whose largest
+#: component lies outside [2^-60, 2^60] is traced as ``d * 2^-texp``.
+_TEXP_RANGE = 60
+
+
+def _texp(directions: np.ndarray) -> np.ndarray:
+    """``int64 (N,)``: the power of two the kernel divides each direction by (make_ray)."""
+    dmax = np.abs(directions).max(axis=1).astype(np.float64)
+    _, e = np.frexp(dmax)
+    e = e.astype(np.int64)
+    out = np.where(e > 0, e - _TEXP_RANGE, e + _TEXP_RANGE - 1)
+    inside = (dmax >= 2.0 ** -_TEXP_RANGE) & (dmax <= 2.0 ** _TEXP_RANGE)
+    return np.where(inside, 0, out)
+
+
+def _exact_under(c: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """``bool``: whether ``c * 2^-e`` is exact in ``c``'s precision."""
+    return np.ldexp(np.ldexp(c, -e), e) == c
+
+
+class _Rays:
+    """Validated rays with the per-ray constants of the watertight test.
+
+    The shear of Woop et al. 2013 (``Sx = d_kx / d_kz``, ``Sy = d_ky / d_kz``) is
+    taken times ``d_kz`` as the kernel does (make_ray): the sheared coordinates
+    are ``x = ez p_kx - ex p_kz``, ``y = ez p_ky - ey p_kz`` with ``(ex, ey, ez)``
+    ``= (d_kx, d_ky, d_kz) 2^-e``, ``|ez|`` in ``[0.5, 1)``. In float32 a ray whose
+    ``d_kx`` or ``d_ky`` would lose bits in that scaling is ``hard``: the kernel
+    tests its triangles in double with ``e = 0``. The float32 twin also traces
+    ``d * 2^-texp`` (make_ray) and scales ``t`` back, as the kernel does.
+    """
+
+    def __init__(self, origins: Any, directions: Any, tmin: Any, tmax: Any, dtype) -> None:
+        rays = check_rays(origins, directions, tmin, tmax)
+        self.count = len(rays)
+        self.origin = rays.origins
+        self.direction = rays.directions
+        self.tmin, self.tmax = rays.intervals()
+        rows = np.arange(self.count)[:, None]
+        if dtype == np.float32:
+            self.texp = _texp(self.direction)
+            traced = np.ldexp(self.direction, -self.texp[:, None]).astype(np.float32)
+        else:
+            self.texp = np.zeros(self.count, np.int64)
+            traced = self.direction
+        self.axes = woop_axes(traced)
+        d = traced[rows, self.axes].astype(dtype)
+        self.o_perm = self.origin[rows, self.axes].astype(dtype)
+        _, e = np.frexp(d[:, 2])
+        e = e.astype(np.int64)
+        if dtype == np.float32:
+            self.hard = (e > 0) & ~(_exact_under(d[:, 0], e) & _exact_under(d[:, 1], e))
+            e = np.where(self.hard, 0, e)
+        else:
+            self.hard = np.zeros(self.count, bool)   # float64 holds every scaled float32 exactly
+        # (ex, ey, ez) and sz = 1 / d_kz, as the kernel computes them, in the chosen precision
+        self.shear = np.ldexp(d, -e[:, None]).astype(dtype)
+        with np.errstate(divide="ignore"):
+            self.sz = dtype(1) / d[:, 2]
+        if dtype == np.float32:
+            # the slab test of accept_hit (kernels/traverse.cl) on d * 2^-texp
+            self.traced = traced
+            self.tmin_traced = np.ldexp(self.tmin.astype(np.float32), self.texp).astype(np.float32)
+            with np.errstate(divide="ignore", over="ignore"):
+                self.inv = (np.float32(1) / traced).astype(np.float32)
+            big = np.float32(np.finfo(np.float32).max)
+            self.inv_near = np.where((traced != 0) & np.isinf(self.inv),
+                                     np.copysign(big, traced), self.inv).astype(np.float32)
+            self.negative = np.signbit(traced)
+
+
+def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: np.ndarray,
+               skip: np.ndarray, dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Woop 2013 for the pairs (``ray[k]``, ``tri[k]``): ``t, u, v`` per pair, ``t = inf`` on a miss.
+
+    tmin/tmax are not applied here. Operation order follows kernels/traverse.cl.
+    """
+    axes = rays.axes[ray]
+    o = rays.o_perm[ray]
+    ex, ey, ez = (rays.shear[ray, k] for k in range(3))
+    sz = rays.sz[ray]
+    x, y, z, rel64 = [], [], [], []
+    for corner in range(3):
+        vid = f[tri, corner]
+        p = [v[vid, axes[:, k]] for k in range(3)]
+        rel = [p[k].astype(dtype) - o[:, k] for k in range(3)]
+        z.append(rel[2])
+        with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+            x.append(rel[0] * ez - rel[2] * ex)
+            y.append(rel[1] * ez - rel[2] * ey)
+        rel64.append(p)
+    (ax, bx, cx), (ay, by, cy) = x, y
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
+        U = cx * by - cy * bx
+        V = ax * cy - ay * cx
+        W = bx * ay - by * ax
+        det = U + V + W
+        T = U * (sz * z[0]) + V * (sz * z[1]) + W * (sz * z[2])
+        inside = ~(((U < 0) | (V < 0) | (W < 0)) & ((U > 0) | (V > 0) | (W > 0))) & (det != 0)
+        t = T / det
+        bu = V / det
+        bv = W / det
+        if dtype == np.float32:
+            # The kernel redoes the test in double when an edge function rounds
+            # to zero or a product leaves float32's normal range; only t, u, v go back.
+            big = np.float32(np.finfo(np.float32).max)
+            tiny = np.float32(np.finfo(np.float32).tiny)
+            redo = ((np.abs(U) < tiny) | (np.abs(V) < tiny) | (np.abs(W) < tiny)
+                    | ~((np.abs(det) >= tiny) & (np.abs(det) <= big))
+                    | ~((np.abs(T) >= tiny) & (np.abs(T) <= big)))
+            redo &= ~rays.hard[ray]
+            if redo.any():
+                d = [q[redo].astype(np.float64) for q in (ax, ay, bx, by, cx, cy)]
+                zd = [q[redo].astype(np.float64) for q in z]
+                Ud = d[4] * d[3] - d[5] * d[2]
+                Vd = d[0] * d[5] - d[1] * d[4]
+                Wd = d[2] * d[1] - d[3] * d[0]
+                detd = Ud + Vd + Wd
+                szd = sz[redo].astype(np.float64)
+                Td = Ud * (szd * zd[0]) + Vd * (szd * zd[1]) + Wd * (szd * zd[2])
+                inside[redo] = (~(((Ud < 0) | (Vd < 0) | (Wd < 0)) & ((Ud > 0) | (Vd > 0) | (Wd > 0)))
+                                & (detd != 0))
+                t[redo] = (Td / detd).astype(np.float32)
+                bu[redo] = (Vd / detd).astype(np.float32)
+                bv[redo] = (Wd / detd).astype(np.float32)
+            hard = rays.hard[ray]
+            if hard.any():
+                # hit_triangle_hard: the whole test in double, d as it is (e = 0)
+                h = np.flatnonzero(hard)
+                od = o[h].astype(np.float64)
+                exd, eyd, ezd = (q[h].astype(np.float64) for q in (ex, ey, ez))
+                xs, ys, zs = [], [], []
+                for p in rel64:
+                    r = [p[k][h].astype(np.float64) - od[:, k] for k in range(3)]
+                    zs.append(r[2])
+                    xs.append(r[0] * ezd - r[2] * exd)
+                    ys.append(r[1] * ezd - r[2] * eyd)
+                Uh = xs[2] * ys[1] - ys[2] * xs[1]
+                Vh = xs[0] * ys[2] - ys[0] * xs[2]
+                Wh = xs[1] * ys[0] - ys[1] * xs[0]
+                deth = Uh + Vh + Wh
+                inside[h] = (~(((Uh < 0) | (Vh < 0) | (Wh < 0)) & ((Uh > 0) | (Vh > 0) | (Wh > 0)))
+                             & (deth != 0))
+                t[h] = ((Uh * zs[0] + Vh * zs[1] + Wh * zs[2]) / (deth * ezd)).astype(np.float32)
+                bu[h] = (Vh / deth).astype(np.float32)
+                bv[h] = (Wh / deth).astype(np.float32)
+            inside &= _own_box(v, f, rays, ray, tri, t)
+            # t was measured along d * 2^-texp
+            t = np.ldexp(t, -rays.texp[ray]).astype(np.float32)
+    inside &= ~skip[tri]
+    return np.where(inside, t, np.inf), bu, bv
+
+
+#: The slab test's factor on the far distance (SLAB_PAD in kernels/traverse.cl).
+SLAB_PAD = np.float32(1 + 2.0 ** -21)
+
+
+def _keep_max(x: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """max_keep of the kernel: ``x > m ? x : m`` (NaN in x keeps m)."""
+    return np.where(x > m, x, m)
+
+
+def _own_box(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: np.ndarray,
+             t: np.ndarray) -> np.ndarray:
+    """accept_hit of kernels/traverse.cl in float32, for the float32 twin: whether the
+    ray enters triangle ``tri``'s own box by the slab test (``bool`` per pair), and
+    ``t`` (along d * 2^-texp, updated in place) raised to that box's entry where
+    ``tmin <= t < t0``."""
+    p = v[f[tri]]                      # (pairs, 3 corners, 3 axes) float32
+    lower, upper = p.min(axis=1), p.max(axis=1)
+    neg = rays.negative[ray]
+    near, far = np.where(neg, upper, lower), np.where(neg, lower, upper)
+    o = rays.origin[ray]
+    with np.errstate(over="ignore", invalid="ignore"):
+        t0 = rays.tmin_traced[ray]
+        t1 = np.full(len(ray), np.inf, np.float32)
+        for k in range(3):
+            t0 = _keep_max((near[:, k] - o[:, k]) * rays.inv_near[ray, k], t0)
+            t1 = np.where((far[:, k] - o[:, k]) * rays.inv[ray, k] < t1,
+                          (far[:, k] - o[:, k]) * rays.inv[ray, k], t1)
+        enters = t0 <= t1 * SLAB_PAD
+        raise_ = t >= rays.tmin_traced[ray]
+        t[raise_] = _keep_max(t0, t)[raise_]
+    return enters
+
+
+def _blocks(v: np.ndarray, f: np.ndarray, pad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Triangles in spatially coherent blocks: (order, block lower, block upper), float64 boxes."""
+    p = v.astype(np.float64)[f]
+    lo, hi = p.min(axis=1), p.max(axis=1)
+    centre = 0.5 * (lo + hi)
+    c_lo, c_hi = centre.min(axis=0), centre.max(axis=0)
+    extent = np.where(c_hi > c_lo, c_hi - c_lo, 1.0)
+    cell = np.minimum(((centre - c_lo) / extent * 1024).astype(np.int64), 1023)
+    order = np.argsort(_interleave(cell), kind="stable")
+    starts = np.arange(0, len(f), BLOCK_SIZE)
+    return (order, np.minimum.reduceat(lo[order], starts) - pad,
+            np.maximum.reduceat(hi[order], starts) + pad)
+
+
+def _interleave(cell: np.ndarray) -> np.ndarray:
+    """Morton order key of 10-bit cell coordinates (only used to group nearby triangles)."""
+    key = np.zeros(len(cell), np.int64)
+    for bit in range(10):
+        for axis in range(3):
+            key |= ((cell[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return key
+
+
+def _reachable_blocks(rays: _Rays, idx: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """``bool (len(idx), B)``: whether each ray's [tmin, tmax] meets each padded block box.
+
+    Slab test in float64 with the near plane picked by the sign bit (so -0.0 is
+    negative) and fmax/fmin ignoring the NaN of an origin on a plane with a
+    zero direction component.
+    """
+    o = rays.origin[idx].astype(np.float64)
+    d = rays.direction[idx].astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        neg = np.signbit(d)
+        tn = np.full((len(idx), len(lo)), -np.inf)
+        tf = np.full((len(idx), len(lo)), np.inf)
+        for k in range(3):
+            near = np.where(neg[:, k:k + 1], hi[None, :, k], lo[None, :, k])
+            far = np.where(neg[:, k:k + 1], lo[None, :, k], hi[None, :, k])
+            tn = np.fmax(tn, (near - o[:, k:k + 1]) * inv[:, k:k + 1])
+            tf = np.fmin(tf, (far - o[:, k:k + 1]) * inv[:, k:k + 1])
+    return (tn <= tf) & (tf >= rays.tmin[idx, None]) & (tn <= rays.tmax[idx, None])
+
+
+def _candidate_pairs(rays: _Rays, num_tris: int, blocks, max_pairs: int):
+    """Yield (ray, tri) index arrays of at most about ``max_pairs`` pairs covering every
+    pair that is not culled."""
+    if blocks is None:
+        per = max(1, max_pairs // num_tris)
+        for start in range(0, rays.count, per):
+            r = np.arange(start, min(rays.count, start + per))
+            yield np.repeat(r, num_tris), np.tile(np.arange(num_tris), len(r))
+        return
+    order, lo, hi = blocks
+    per = max(1, max_pairs // max(len(lo), BLOCK_SIZE))
+    for start in range(0, rays.count, per):
+        idx = np.arange(start, min(rays.count, start + per))
+        r, b = np.nonzero(_reachable_blocks(rays, idx, lo, hi))
+        ray = np.repeat(idx[r], BLOCK_SIZE)
+        slot = (b[:, None] * BLOCK_SIZE + np.arange(BLOCK_SIZE)).ravel()
+        keep = slot < num_tris
+        ray, slot = ray[keep], slot[keep]
+        for s in range(0, len(ray), max_pairs):
+            yield ray[s:s + max_pairs], order[slot[s:s + max_pairs]]
+
+
+def brute_force(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: Any = 0.0,
+                tmax: Any = np.inf, *, dtype=np.float64, cull: bool = True,
+                max_pairs: int = 1 << 18) -> Hits:
+    """Closest hit of every ray against every triangle (see the module docstring).
+
+    Args:
+        vertices: ``(V, 3)``, faces: ``(F, 3)``: the mesh (validated like the builder's input).
+        origins, directions, tmin, tmax: rays as for :func:`lbvh.queries.traverse.intersect`
+            (same validation, same float32 conversion).
+        dtype: ``np.float64`` for the oracle, ``np.float32`` for the kernel's twin.
+        cull: skip pairs whose triangle's block the ray cannot reach (never changes results).
+        max_pairs: ray-triangle pairs per numpy step (about ``400 * max_pairs`` bytes).
+
+    Returns:
+        :class:`lbvh.queries.traverse.Hits`, float32 fields (the oracle's float64 ``t, u, v``
+        rounded to nearest), ``overflow`` all ``False``.
+    """
+    dtype = np.dtype(dtype).type
+    if dtype not in (np.float32, np.float64):
+        raise ValueError(f"dtype: {dtype}; expected float32 or float64")
+    v = as_vertices(vertices)
+    f = as_faces(faces, len(v)).astype(np.int64)
+    rays = _Rays(origins, directions, tmin, tmax, dtype)
+    skip = degenerate_triangles(v, f, dtype)
+    blocks = None
+    if cull:
+        scale = max(float(np.abs(v).max()), float(np.abs(rays.origin).max(initial=0.0)), 1e-30)
+        blocks = _blocks(v, f, BLOCK_PADDING * scale)
+    found = []
+    for ray, tri in _candidate_pairs(rays, len(f), blocks, max_pairs):
+        t, bu, bv = _pair_hits(v, f, rays, ray, tri, skip, dtype)
+        ok = (t >= rays.tmin[ray]) & (t <= rays.tmax[ray]) & (t < np.inf)
+        found.append((ray[ok], tri[ok], t[ok], bu[ok], bv[ok]))
+    n = rays.count
+    out = Hits(t=np.full(n, np.inf, np.float32), prim=np.full(n, -1, np.int32),
+               u=np.zeros(n, np.float32), v=np.zeros(n, np.float32),
+               overflow=np.zeros(n, bool), overflow_count=0)
+    if found:
+        ray, tri, t, bu, bv = (np.concatenate(cols) for cols in zip(*found))
+        order = np.lexsort((tri, t, ray))            # by ray, then t, then triangle index
+        first = order[np.unique(ray[order], return_index=True)[1]]
+        r = ray[first]
+        # + 0 turns -0.0 into +0.0, as the kernel does. A float64 t beyond float32's
+        # range becomes inf, as the kernel's t does (a hit that far is still a hit:
+        # its primitive is kept); the cast's overflow warning says nothing more.
+        with np.errstate(over="ignore"):
+            out.t[r], out.prim[r], out.u[r], out.v[r] = (t[first] + 0, tri[first], bu[first],
+                                                          bv[first])
+    return out
+
+
+def hits_on(vertices: Any, faces: Any, origins: Any, directions: Any, prims: Any,
+            dtype=np.float64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``t, u, v`` of ray ``i`` against triangle ``prims[i]`` (tmin/tmax ignored).
+
+    ``t`` is ``inf`` where the ray misses that triangle (or it is degenerate).
+    Used to judge ties: two triangles hit at the same distance.
+    """
+    dtype = np.dtype(dtype).type
+    v = as_vertices(vertices)
+    f = as_faces(faces, len(v)).astype(np.int64)
+    rays = _Rays(origins, directions, 0.0, np.inf, dtype)
+    prims = np.asarray(prims, np.int64)
+    skip = degenerate_triangles(v, f, dtype)
+    return _pair_hits(v, f, rays, np.arange(rays.count), prims, skip, dtype)

@@ -1,0 +1,134 @@
+"""Running the hard cases: each case (:mod:`lbvh.verification.hard_cases`) built
+by each builder of :data:`BUILDERS`, its tree checked, its rays traced and the
+answers judged by the rules (:mod:`lbvh.verification.rules`): one
+:class:`~lbvh.verification.rules.Outcome` per case and builder.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Iterable
+
+import numpy as np
+
+from ..api import build
+from ..queries.traverse import stack_need, stack_size_for
+from . import hard_cases
+from .hard_cases import Case
+from .rules import Judge, Outcome, compare_any, compare_closest, reference
+
+#: Builders by the names ``--builders`` takes: the options given to :func:`lbvh.build`.
+BUILDERS: dict[str, dict[str, Any]] = {
+    "lbvh30": {"builder": "lbvh", "key_bits": 30},
+    "lbvh63": {"builder": "lbvh", "key_bits": 63},
+    "lbvh-auto": {"builder": "lbvh", "key_bits": "auto"},
+    "lbvh30-collapse": {"builder": "lbvh", "key_bits": 30, "collapse": True},
+    "lbvh63-collapse": {"builder": "lbvh", "key_bits": 63, "collapse": True},
+    "lbvh-auto-collapse": {"builder": "lbvh", "key_bits": "auto", "collapse": True},
+    "lbvh-auto-treelets": {"builder": "lbvh", "key_bits": "auto", "treelet_rounds": 2},
+    "sah": {"builder": "sah"},
+}
+
+#: Builders that cannot run a case in reasonable time, with the reason (reported, not run).
+SKIPS: dict[tuple[str, str], str] = {
+    ("over_2_24_triangles", "sah"): "the serial SAH would need an estimated 20+ minutes and "
+                                    "10+ GB for 2^24 triangles (it takes 149 s and 1.4 GB "
+                                    "for 2^21)",
+}
+
+
+def _nonfinite_boxes(bvh: Any) -> int:
+    finite = np.isfinite(bvh.lower).all(axis=1) & np.isfinite(bvh.upper).all(axis=1)
+    return int((~finite).sum())
+
+
+def run_case(case: Case, builder: str, judge: Judge | None = None, device: Any = None,
+             bvh_out: list | None = None) -> Outcome:
+    """Build ``case`` with ``builder`` (a key of :data:`BUILDERS`) and check every rule.
+
+    ``judge`` is ``Judge(case, reference(case))`` (made if not given). With
+    ``bvh_out`` (a list) the tree is appended to it, for callers that test more.
+    """
+
+    if builder not in BUILDERS:
+        raise ValueError(f"unknown builder {builder!r}; known: {', '.join(BUILDERS)}")
+    out = Outcome(case.name, builder, hard_cases.ISSUE_CASE.get(case.name, 0),
+                  len(case.faces), case.num_rays)
+    if (case.name, builder) in SKIPS:
+        out.skipped = SKIPS[(case.name, builder)]
+        return out
+    try:
+        start = time.perf_counter()
+        bvh = build(case.vertices, case.faces, device=device, **BUILDERS[builder])
+        out.build_seconds = time.perf_counter() - start
+    except Exception as exc:  # a failed build is a result to report, not a crash
+        out.error = f"build raised {type(exc).__name__}: {exc}"
+        return out
+    if bvh_out is not None:
+        bvh_out.append(bvh)
+    try:
+        bvh.validate()
+    except ValueError as exc:
+        out.validate_error = str(exc)
+    out.nonfinite_boxes = _nonfinite_boxes(bvh)
+    out.forced_stack = case.stack_size is not None
+    out.tree_stack = stack_size_for(bvh)
+    out.stack = case.stack_size if out.forced_stack else out.tree_stack
+    out.stack_need = stack_need(bvh)
+    out.depth = int(bvh.depths().max()) if bvh.num_nodes > 1 else 0
+    if out.validate_error:  # tracing a broken tree proves nothing more
+        return out
+    judge = Judge(case, reference(case)) if judge is None else judge
+    try:
+        _trace_and_compare(case, bvh, judge, out)
+    except Exception as exc:
+        out.error = f"query raised {type(exc).__name__}: {exc}"
+    return out
+
+
+def _trace_and_compare(case: Case, bvh: Any, judge: Judge, out: Outcome) -> None:
+    options = {"stack_size": case.stack_size} if case.stack_size is not None else {}
+    rays = (case.origins, case.directions, case.tmin, case.tmax)
+    closest = bvh.intersect(*rays, **options)
+    any_hit = bvh.occluded(*rays, return_hits=True, **options)
+    out.overflow = int(closest.overflow_count)
+    out.any_hit_overflow = int(any_hit.overflow_count)
+    agreement = compare_closest(judge, closest.prim, closest.t, closest.overflow)
+    out.mismatches = int(agreement.wrong.sum())
+    out.ambiguous = agreement.ambiguous
+    out.worst_rel_t = agreement.worst_rel_t
+    out.worst_t_over_bound = agreement.worst_t_over_bound
+    out.first_mismatch = agreement.first
+    out.any_hit_mismatches = int(compare_any(judge, any_hit.prim, any_hit.t,
+                                             any_hit.overflow).sum())
+    if case.must_hit is not None:
+        out.leaks = int((case.must_hit & ~closest.hit & ~closest.overflow).sum())
+
+
+def run(case_names: Iterable[str], builders: Iterable[str], device: Any = None,
+        progress=None) -> list[Outcome]:
+    """Every case by every builder; ``progress(outcome)`` is called after each."""
+    outcomes = []
+    builders = list(builders)
+    for name in case_names:
+        case = hard_cases.make(name)
+        judge = None
+        for builder in builders:
+            if judge is None and (case.name, builder) not in SKIPS:
+                judge = Judge(case, reference(case))
+            outcome = run_case(case, builder, judge, device)
+            outcomes.append(outcome)
+            if progress is not None:
+                progress(outcome)
+    return outcomes
+
+
+def warm_up(builders: list[str], device: Any = None) -> None:
+    """Build and trace two triangles with each builder, so that the kernels are
+    compiled before anything is timed."""
+
+    v = np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    f = np.uint32([[0, 1, 2], [0, 1, 3]])
+    for builder in builders:
+        bvh = build(v, f, device=device, **BUILDERS[builder])
+        bvh.intersect(v[:1] - 1, np.float32([[1, 1, 1]]))
+        bvh.occluded(v[:1] - 1, np.float32([[1, 1, 1]]))

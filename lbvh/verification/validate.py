@@ -1,0 +1,128 @@
+"""Host-side checker of a BVH in the project's layout (docs/layout.md).
+
+It reads only the public arrays, so it checks any builder's tree the same way,
+and raises :class:`BVHValidationError` with the first violation it finds.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..builders.bounds import triangle_boxes_numpy
+from ..layout import children_of, is_leaf, prim_range_of
+
+
+class BVHValidationError(ValueError):
+    """A BVH broke one of the invariants of docs/layout.md."""
+
+
+def _fail(msg: str) -> None:
+    raise BVHValidationError(f"invalid BVH: {msg}")
+
+
+def _first(mask: np.ndarray) -> int:
+    return int(np.flatnonzero(mask)[0])
+
+
+def validate_tree(nodes: np.ndarray, parent: np.ndarray, prim_order: np.ndarray, root: int,
+                  vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Check every invariant of docs/layout.md; raise on the first violation."""
+    num_nodes = len(nodes)
+    num_prims = len(faces)
+    if num_nodes == 0:
+        _fail("no nodes")
+    if not 0 <= root < num_nodes:
+        _fail(f"root {root} outside [0, {num_nodes})")
+    if parent.shape != (num_nodes,):
+        _fail(f"parent has shape {parent.shape}, expected ({num_nodes},)")
+    leaf = is_leaf(nodes)
+    children = children_of(nodes)
+    internal = np.flatnonzero(~leaf)
+    num_leaves = int(leaf.sum())
+
+    # 1. binary tree with leaves - 1 internal nodes
+    if len(internal) != num_leaves - 1:
+        _fail(f"{len(internal)} internal nodes for {num_leaves} leaves (expected {num_leaves - 1})")
+    kids = children[internal]
+    bad = (kids < 0) | (kids >= num_nodes)
+    if bad.any():
+        i = _first(bad.any(axis=1))
+        _fail(f"internal node {internal[i]} has child index {kids[i].tolist()} outside [0, {num_nodes})")
+
+    # 2. parent links, one parent per node, everything reachable from the root
+    if parent[root] != -1:
+        _fail(f"root {root} has parent {parent[root]} (expected -1)")
+    times_child = np.bincount(kids.ravel(), minlength=num_nodes)
+    if times_child[root]:
+        _fail(f"root {root} is the child of another node")
+    twice = times_child > 1
+    if twice.any():
+        _fail(f"node {_first(twice)} is the child of {times_child[_first(twice)]} nodes")
+    orphan = times_child == 0
+    orphan[root] = False
+    if orphan.any():
+        _fail(f"node {_first(orphan)} is nobody's child (tree not connected)")
+    for side in (0, 1):
+        wrong = parent[kids[:, side]] != internal
+        if wrong.any():
+            i = _first(wrong)
+            c = kids[i, side]
+            _fail(f"node {c} has parent {parent[c]}, but it is a child of {internal[i]}")
+    seen = np.zeros(num_nodes, bool)
+    frontier = np.array([root])
+    for _ in range(num_nodes + 1):
+        if len(frontier) == 0:
+            break
+        if seen[frontier].any():
+            _fail(f"node {frontier[seen[frontier]][0]} is reached twice (cycle)")
+        seen[frontier] = True
+        frontier = children[frontier][~leaf[frontier]].ravel()
+    if not seen.all():
+        _fail(f"node {_first(~seen)} is not reachable from the root (cycle)")
+
+    # 3. primitives: a permutation, tiled exactly by the leaves' ranges
+    if prim_order.shape != (num_prims,):
+        _fail(f"prim_order has shape {prim_order.shape}, expected ({num_prims},)")
+    if num_prims and (prim_order.min() < 0 or prim_order.max() >= num_prims):
+        _fail(f"prim_order holds indices outside [0, {num_prims})")
+    hits = np.bincount(prim_order.astype(np.int64), minlength=num_prims)
+    if (hits != 1).any():
+        t = _first(hits != 1)
+        _fail(f"triangle {t} appears {hits[t]} times in prim_order")
+    ranges = prim_range_of(nodes)[leaf]
+    leaf_ids = np.flatnonzero(leaf)
+    if (ranges[:, 1] < 1).any():
+        _fail(f"leaf {leaf_ids[_first(ranges[:, 1] < 1)]} has no primitive")
+    order = np.argsort(ranges[:, 0], kind="stable")
+    starts = ranges[order, 0].astype(np.int64)
+    ends = starts + ranges[order, 1]
+    expected_starts = np.concatenate([[0], ends[:-1]])
+    if (starts != expected_starts).any() or ends[-1] != num_prims:
+        i = _first(starts != expected_starts) if (starts != expected_starts).any() else len(order) - 1
+        _fail(f"leaf {leaf_ids[order[i]]} covers slots [{starts[i]}, {ends[i]}), "
+              f"leaves must tile [0, {num_prims}) exactly")
+
+    # 4. boxes: finite, ordered, nested, and leaves exact
+    lo, hi = nodes["lower"], nodes["upper"]
+    nonfinite = ~(np.isfinite(lo).all(axis=1) & np.isfinite(hi).all(axis=1))
+    if nonfinite.any():
+        _fail(f"node {_first(nonfinite)} has a non-finite box")
+    inverted = (lo > hi).any(axis=1)
+    if inverted.any():
+        _fail(f"node {_first(inverted)} has lower > upper")
+    for side, name in ((0, "left"), (1, "right")):
+        c = kids[:, side]
+        outside = (lo[c] < lo[internal]).any(axis=1) | (hi[c] > hi[internal]).any(axis=1)
+        if outside.any():
+            i = _first(outside)
+            _fail(f"node {internal[i]} box does not contain its {name} child {c[i]}")
+    tlo, thi = triangle_boxes_numpy(vertices, faces)
+    slot_lo, slot_hi = tlo[prim_order], thi[prim_order]
+    first = ranges[:, 0]
+    leaf_lo = np.minimum.reduceat(slot_lo, first[order], axis=0)
+    leaf_hi = np.maximum.reduceat(slot_hi, first[order], axis=0)
+    ids = leaf_ids[order]
+    wrong = (leaf_lo != lo[ids]).any(axis=1) | (leaf_hi != hi[ids]).any(axis=1)
+    if wrong.any():
+        i = _first(wrong)
+        _fail(f"leaf {ids[i]} box {lo[ids[i]].tolist()}..{hi[ids[i]].tolist()} is not the exact "
+              f"box of its triangles {leaf_lo[i].tolist()}..{leaf_hi[i].tolist()}")

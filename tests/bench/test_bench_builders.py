@@ -1,0 +1,221 @@
+"""The builders bench (bench/bench_builders.py): its quick mode end to end, its
+break-even and agreement arithmetic, and the claim its agreement column rests on:
+every builder's tree, traced by the same kernel, returns the same hits."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+
+import numpy as np
+import pytest
+
+from conftest import REPO, shipped_mesh
+from lbvh.verification.oracle import hits_on
+from lbvh.queries.traverse import intersect
+
+
+sys.path.insert(0, str(REPO / "bench"))   # bench/ is not a package: the script imports common
+import common  # noqa: E402  (bench/common.py)
+
+
+def _load_bench():
+    path = REPO / "bench" / "bench_builders.py"
+    spec = importlib.util.spec_from_file_location("bench_builders", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module      # dataclasses look their module up by name
+    spec.loader.exec_module(module)
+    return module
+
+
+bench = _load_bench()
+
+
+def _importable(name: str) -> bool:
+    return importlib.util.find_spec(name) is not None
+
+
+# -- the quick mode, end to end -------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench_builders")
+    report = bench.main(["--quick", "--out", str(out)])
+    return out, report
+
+
+def _finite_positive(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and x > 0
+
+
+def test_quick_json_has_every_field_for_every_scene_and_builder(quick):
+    out, report = quick
+    data = json.loads((out / "bench_builders.json").read_text())
+    assert data["rows"] and data["scenes"] and not data["skipped"]
+    machine = data["machine"]
+    assert machine["cpu"] and machine["cores"] >= 1 and machine["opencl_device"]
+    expected = {v.name for v in bench.our_variants()}
+    if _importable("embreex"):
+        expected.add("embree")
+    if _importable("warp"):
+        expected |= {f"warp-{c}" for c in common.Warp.CONSTRUCTORS}
+    for scene in data["scenes"]:
+        rows = [r for r in data["rows"] if r["scene"] == scene["name"]]
+        assert {r["builder"] for r in rows} == expected
+        assert len(rows) == len(expected)
+        assert 0.5 <= scene["hit_fraction"] <= 1      # the camera sees the scene
+    for row in data["rows"]:
+        assert set(bench.ROW_FIELDS) <= set(row), set(bench.ROW_FIELDS) - set(row)
+        for name in bench.ROW_FIELDS:
+            if row[name] is None:
+                assert row["null_reasons"].get(name), f"{row['builder']}: {name} is null without reason"
+
+
+def test_quick_numbers_are_finite_and_sane(quick):
+    _, report = quick
+    for row in report["rows"]:
+        who = f"{row['scene']} {row['builder']}"
+        for name in ("build_seconds", "render_seconds", "rays_per_second", "seconds_per_ray"):
+            assert _finite_positive(row[name]), (who, name, row[name])
+        assert row["rays_per_second"] == pytest.approx(row["rays"] / row["render_seconds"])
+        assert row["build_seconds"] == pytest.approx(float(np.median(row["build"]["samples"])))
+        assert 0 <= row["hit_fraction"] <= 1
+        a = row["agreement"]
+        assert 0 <= a["fraction"] <= a["fraction_with_ties"] <= 1
+        if row["family"] in ("lbvh", "sah"):
+            for name in ("sah_cost", "sah_ratio", "traversal_cost_per_ray", "traversal_ratio"):
+                assert _finite_positive(row[name]), (who, name, row[name])
+            assert row["nodes_per_ray"] >= 1 and row["tris_per_ray"] >= 0
+            assert row["overflow_count"] == 0
+            assert row["tree"]["num_nodes"] >= 1 and row["tree"]["depth"] >= 0
+            assert row["tree"]["key_bits"] in (30, 63, None)
+            # same kernel, same triangle tests: the same closest hits up to ties
+            assert a["fraction_with_ties"] == 1.0 and a["hit_miss_differ"] == 0
+    for ref in (r for r in report["rows"] if r["builder"] == bench.REFERENCE):
+        assert ref["sah_ratio"] == 1.0 and ref["traversal_ratio"] == 1.0
+        assert ref["agreement"]["fraction"] == 1.0
+
+
+def test_quick_break_even_is_a_number_or_null_with_reason(quick):
+    _, report = quick
+    for row in report["rows"]:
+        builders = {r["builder"] for r in report["rows"] if r["scene"] == row["scene"]}
+        for name in ("break_even_vs_fastest", "break_even_vs_reference"):
+            b = row[name]
+            assert b["against"] in builders
+            if b["rays"] is None:
+                assert isinstance(b["reason"], str) and b["reason"]
+            else:
+                assert _finite_positive(b["rays"]) and b["reason"] is None
+                assert {b["cheaper_before"], b["cheaper_after"]} == {row["builder"], b["against"]}
+    for scene in report["scenes"]:
+        for key in ("best_by_rays", "best_by_rays_ours"):
+            segments = scene[key]
+            assert segments[0]["from_rays"] == 0 and segments[-1]["to_rays"] is None
+            for before, after in zip(segments, segments[1:]):
+                assert before["to_rays"] == after["from_rays"]
+
+
+def test_quick_writes_markdown_chart_and_view(quick):
+    out, report = quick
+    text = (out / "bench_builders.md").read_text()
+    assert "| scene | tris | builder | build ms |" in text
+    assert text.count(f"| {report['scenes'][0]['name']} |") == len(report["rows"])
+    assert (out / "views" / f"{report['scenes'][0]['name']}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    if not _importable("matplotlib"):
+        assert report["chart_missing"]
+        pytest.skip("matplotlib is not installed: no chart")
+    assert report["chart_missing"] is None
+    assert (out / "bench_builders.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_missing_scene_is_skipped_with_reason_and_bad_names_refused(tmp_path):
+    report = bench.main(["--scenes", "bunny", "--shared", str(tmp_path / "absent"), "--no-peers",
+                         "--out", str(tmp_path)])
+    assert report["rows"] == [] and report["skipped"][0]["scene"] == "bunny"
+    assert "not found" in report["skipped"][0]["reason"]
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--scenes", "no-such-scene"])
+    with pytest.raises(SystemExit):
+        bench.parse_args(["--rays", "12by4"])
+
+
+# -- the arithmetic of the comparisons -------------------------------------------------
+
+def _line(name, build, per_ray):
+    return {"builder": name, "build_seconds": build, "seconds_per_ray": per_ray}
+
+
+def test_break_even_solves_build_a_plus_n_cost_a_equals_build_b_plus_n_cost_b():
+    fast, good = _line("fast", 1.0, 4e-6), _line("good", 3.0, 1e-6)
+    b = bench.crossing(good, fast)
+    assert b["rays"] == pytest.approx(2.0 / 3e-6)      # 1 + 4e-6 n = 3 + 1e-6 n
+    assert (b["cheaper_before"], b["cheaper_after"]) == ("fast", "good")
+    assert bench.crossing(fast, good)["rays"] == pytest.approx(b["rays"])
+    worse = _line("worse", 2.0, 5e-6)                  # slower build, slower trace
+    never = bench.crossing(worse, fast)
+    assert never["rays"] is None and never["cheaper_after"] == "fast" and never["reason"]
+    assert bench.crossing(fast, worse)["cheaper_before"] == "fast"
+    assert bench.crossing(fast, fast)["rays"] is None
+
+
+def test_lower_envelope_picks_the_cheapest_builder_at_every_ray_count():
+    lines = [_line("a", 1.0, 4e-6), _line("b", 3.0, 1e-6), _line("c", 2.0, 3.9e-6),
+             _line("d", 10.0, 0.5e-6)]
+    segments = bench.lower_envelope(lines)
+    assert [s["builder"] for s in segments] == ["a", "b", "d"]
+    for s in segments:                       # check against brute force inside each segment
+        upper = s["to_rays"] if s["to_rays"] is not None else 2 * s["from_rays"] + 1e9
+        for n in np.linspace(s["from_rays"], upper, 7)[1:-1]:
+            best = min(lines, key=lambda r: r["build_seconds"] + n * r["seconds_per_ray"])
+            assert best["builder"] == s["builder"], n
+
+
+def test_agreement_counts_ties_misses_and_t_errors():
+    t_ref = np.float32([1.0, 2.0, np.inf, 4.0, 5.0])
+    p_ref = np.int32([0, 1, -1, 3, 4])
+    t = np.float32([1.0, 2.0, 3.0, 4.0, 5.5])
+    prim = np.int32([0, 7, 2, 3, 4])                  # a tie, a false hit, a t off by far
+    bound = np.full(5, 1e-3)
+    a = bench.agreement(t, prim, t_ref, p_ref, bound)
+    assert a["fraction"] == pytest.approx(2 / 5) and a["fraction_with_ties"] == pytest.approx(3 / 5)
+    assert (a["ties"], a["hit_miss_differ"], a["t_out_of_bound"]) == (1, 1, 1)
+
+
+# -- every builder, one kernel, the same hits -----------------------------------------
+
+def _rays(v, camera_name, rng, n_random=1500):
+    """The bench camera's rays plus rays from a sphere around the scene towards its box."""
+    camera = common.Camera.from_dict(common.load_cameras()[camera_name], size=(64, 48))
+    o_cam, d_cam = camera.rays()
+    lo, hi = v.min(0).astype(np.float64), v.max(0).astype(np.float64)
+    centre, ext = (lo + hi) / 2, float((hi - lo).max())
+    around = rng.normal(size=(n_random, 3))
+    o = centre + around / np.linalg.norm(around, axis=1, keepdims=True) * 2 * ext
+    d = lo + rng.random((n_random, 3)) * (hi - lo) - o
+    return (np.concatenate([o_cam, o.astype(np.float32)]),
+            np.concatenate([d_cam, d.astype(np.float32)]))
+
+
+@pytest.mark.parametrize("name", ["teapot", "suzanne"])
+def test_every_builder_returns_the_same_hits_through_the_same_kernel(name, ctx):
+    v, f = shipped_mesh(f"{name}.obj")
+    o, d = _rays(v, name, np.random.default_rng(7))
+    trees = {variant.name: bench.build_tree(variant, v, f, ctx) for variant in bench.our_variants()}
+    ref = intersect(trees[bench.REFERENCE], o, d)
+    assert 0.2 < ref.hit.mean() < 1
+    bound = bench.t_bound(v, f, o, d, ref.t, ref.prim, cos_floor=bench.AGREEMENT_COS_FLOOR)
+    for builder, bvh in trees.items():
+        bvh.validate()
+        got = intersect(bvh, o, d)
+        assert got.overflow_count == 0, builder
+        assert (got.hit == ref.hit).all(), f"{builder}: hit/miss differs on ray {np.flatnonzero(got.hit != ref.hit)[0]}"
+        hit = np.flatnonzero(ref.hit)
+        err = np.abs(got.t[hit].astype(np.float64) - ref.t[hit])
+        assert (err <= bound[hit]).all(), f"{builder}: t off by {err.max():.3g}"
+        # another primitive only where it is a tie: the ray meets it at the same t
+        other = hit[got.prim[hit] != ref.prim[hit]]
+        if len(other):
+            t_other, _, _ = hits_on(v, f, o[other], d[other], got.prim[other])
+            assert (np.abs(t_other - ref.t[other]) <= bound[other]).all(), builder

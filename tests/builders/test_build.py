@@ -1,0 +1,225 @@
+"""Whole device builds: valid trees on real and generated scenes, and the API around them."""
+from __future__ import annotations
+
+import gc
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import lbvh
+from conftest import REPO, random_soup, shared_mesh, shipped_mesh
+from lbvh import device as dev
+from lbvh.layout import NODE_DTYPE
+
+
+@pytest.mark.parametrize("scene", ["stanford-bunny.obj", "crytek_sponza.obj", "conference.obj"])
+@pytest.mark.parametrize("keys", [30, 63, "auto"])
+def test_shared_scenes_build_valid_trees(scene, keys):
+    v, f = shared_mesh(scene)
+    bvh = lbvh.build(v, f, key_bits=keys)
+    bvh.validate()
+    rep = bvh.report()
+    assert rep.num_triangles == len(f) and rep.num_leaves == len(f)
+    assert rep.num_nodes == 2 * len(f) - 1
+    # Karras trees are at most (key bits + index bits) deep
+    assert rep.depth <= (30 if rep.key_bits == 32 else 63) + 32
+
+
+def test_conference_zero_area_triangles_and_auto_keys():
+    v, f = shared_mesh("conference.obj")
+    tri = v[f].astype(np.float64)
+    area2 = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    assert (area2 == 0).sum() == 53627  # the scene as documented
+    bvh = lbvh.build(v, f, key_bits="auto")
+    rep = bvh.report()
+    # many 30-bit codes collide in this scene: auto must move to 63 bits and say why
+    assert rep.key_bits == 64 and "moved to 63 bits" in rep.key_choice
+    assert f"of {len(f):,} 30-bit codes are duplicates" in rep.key_choice
+    # 63 bits separate more of them, but the identical triangles of the scene still collide
+    assert 0 < rep.duplicate_codes < int(rep.key_choice.split()[1].replace(",", ""))
+
+
+def test_auto_keeps_30_bits_when_codes_separate_well():
+    v, f = random_soup(5000, seed=11)
+    rep = lbvh.build(v, f).report()
+    assert rep.key_bits == 32 and "kept 30 bits" in rep.key_choice
+
+
+GENERATED = {
+    "all_identical": lambda: (np.tile(np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0]]), (20000, 1)),
+                              np.arange(60000, dtype=np.uint32).reshape(-1, 3)),
+    "one_point": lambda: (np.zeros((3000, 3), np.float32), np.arange(3000, dtype=np.uint32).reshape(-1, 3)),
+    "flat_z": lambda: (random_soup(4000, 1)[0] * np.float32([1, 1, 0]), random_soup(4000)[1]),
+    "line_y": lambda: (random_soup(4000, 2)[0] * np.float32([0, 1, 0]), random_soup(4000)[1]),
+    "one_triangle": lambda: (np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.uint32([[0, 1, 2]])),
+    "two_triangles": lambda: (np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]]),
+                              np.uint32([[0, 1, 2], [1, 3, 2]])),
+    "pow2_plus_1": lambda: random_soup(4097, 3),
+}
+
+
+@pytest.mark.parametrize("name", sorted(GENERATED))
+@pytest.mark.parametrize("keys", [30, 63])
+def test_generated_cases_build_valid_trees(name, keys):
+    v, f = GENERATED[name]()
+    bvh = lbvh.build(v, f, key_bits=keys)
+    bvh.validate()
+    assert bvh.num_nodes == 2 * len(f) - 1 and bvh.root == 0
+    assert np.isfinite(bvh.lower).all() and np.isfinite(bvh.upper).all()
+    if name == "all_identical":
+        assert bvh.report().duplicate_codes == len(f) - 1
+
+
+def test_views_follow_the_documented_layout():
+    v, f = shipped_mesh("teapot.obj")
+    bvh = lbvh.build(v, f)
+    n = len(f)
+    assert bvh.nodes.dtype == NODE_DTYPE and bvh.nodes.shape == (2 * n - 1,)
+    assert bvh.lower.dtype == np.float32 and bvh.lower.shape == (2 * n - 1, 3)
+    assert bvh.children.dtype == np.int32 and bvh.children.shape == (2 * n - 1, 2)
+    assert (bvh.children[n - 1:] == -1).all() and (bvh.children[: n - 1] >= 0).all()
+    assert np.array_equal(bvh.prim_range[n - 1:], np.stack([np.arange(n), np.ones(n)], 1))
+    assert bvh.parent[0] == -1 and bvh.prim_order.dtype == np.int32
+    assert np.array_equal(np.sort(bvh.prim_order), np.arange(n))
+    assert bvh.is_leaf.sum() == n
+    with pytest.raises(ValueError):
+        bvh.nodes["lower"][0] = 0  # views are read-only: the device copy is the truth
+
+
+def test_save_and_load_round_trip(tmp_path):
+    v, f = shipped_mesh("suzanne.obj")
+    bvh = lbvh.build(v, f)
+    path = tmp_path / "suzanne_bvh.npz"
+    bvh.save(path)
+    with np.load(path) as data:  # a plain numpy container
+        assert data["nodes"].dtype == NODE_DTYPE
+    loaded = lbvh.load(path)
+    loaded.validate()
+    for name in ("nodes", "parent", "prim_order", "vertices", "faces"):
+        assert np.array_equal(getattr(loaded, name), getattr(bvh, name)), name
+    loaded.refit(v * np.float32(2))
+    loaded.validate()
+
+
+def test_load_rejects_other_files(tmp_path):
+    bad = tmp_path / "other.npz"
+    np.savez(bad, x=np.zeros(3))
+    with pytest.raises(ValueError, match="not a saved lbvh BVH"):
+        lbvh.load(bad)
+    text = tmp_path / "text.npz"
+    text.write_text("hello")
+    with pytest.raises(ValueError, match="not a saved lbvh BVH"):
+        lbvh.load(text)
+
+
+def test_refit_follows_moving_vertices():
+    v, f = shipped_mesh("teapot.obj")
+    bvh = lbvh.build(v, f)
+    moved = v + np.float32([10, -3, 2])
+    bvh.refit(moved)
+    bvh.validate()
+    fresh = lbvh.build(moved, f)
+    assert np.allclose(bvh.lower[bvh.root], fresh.lower[fresh.root])
+    assert np.array_equal(bvh.lower[bvh.root], moved.min(axis=0))
+
+
+def test_second_build_compiles_nothing(ctx):
+    v, f = shipped_mesh("teapot.obj")
+    lbvh.build(v, f, key_bits="auto")
+    lbvh.build(v, f, key_bits=30)
+    before = ctx.compiled_programs()
+    v2, f2 = random_soup(3000, seed=9)
+    lbvh.build(v2, f2, key_bits="auto")
+    lbvh.build(v2, f2, key_bits=30)
+    assert ctx.compiled_programs() == before
+
+
+def test_report_has_phases_memory_and_device():
+    v, f = shared_mesh("stanford-bunny.obj")
+    rep = lbvh.build(v, f).report()
+    assert set(rep.phase_seconds) == {"bounds", "morton", "sort", "emit", "refit"}
+    assert all(t > 0 for t in rep.phase_seconds.values())
+    assert "Portable Computing Language" in rep.device
+    assert 0 < rep.bytes_per_triangle < 128
+    d = rep.as_dict()
+    assert d["depth"] == rep.depth and d["duplicate_codes"] == rep.duplicate_codes
+    text = str(rep)
+    for word in ("device:", "phases (ms)", "duplicate codes", "depth"):
+        assert word in text
+
+
+def test_device_chosen_by_environment_variable():
+    code = ("import lbvh, numpy as np; b = lbvh.build(np.eye(3, dtype=np.float32), [[0, 1, 2]]);"
+            "print(b.ctx.name)")
+    env = dict(os.environ, LBVH_DEVICE="pthread")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, cwd=REPO)
+    assert out.returncode == 0, out.stderr
+    assert "pthread" in out.stdout
+    env["LBVH_DEVICE"] = "no-such-device-xyz"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, cwd=REPO)
+    assert out.returncode != 0 and "no OpenCL device matches" in out.stderr
+
+
+def test_build_with_leaf_collapse():
+    v, f = shipped_mesh("teapot.obj")
+    plain = lbvh.build(v, f)
+    bvh = lbvh.build(v, f, collapse=True, max_leaf_size=4)
+    bvh.validate()
+    sizes = bvh.prim_range[bvh.is_leaf, 1]
+    assert sizes.max() <= 4 and sizes.sum() == len(f) and bvh.num_nodes < plain.num_nodes
+    assert lbvh.sah_cost(bvh) <= lbvh.sah_cost(plain)
+    assert bvh.builder == "lbvh+collapse"
+
+
+def test_scratch_pool_holds_one_build_and_is_reused(ctx):
+    v, f = random_soup(20000, seed=21)
+    first = lbvh.build(v, f, key_bits=30)
+    held = ctx.memory.pooled_bytes()
+    assert held >= 32 * len(f)  # at least the triangle boxes stay pooled
+    second = lbvh.build(v, f, key_bits=30)
+    assert ctx.memory.pooled_bytes() == held  # the same buffers went round again
+    assert np.array_equal(first.nodes, second.nodes)
+    ctx.memory.trim()
+    assert ctx.memory.pooled_bytes() == 0
+    lbvh.build(v, f, key_bits=30).validate()
+
+
+def test_a_dropped_trees_buffers_serve_the_next_build(ctx):
+    """Rebuilding every frame: the last dropped tree's output buffers are reused (no
+    fresh pages), never while the tree lives, and only one dropped tree is kept."""
+    v, f = random_soup(5000, seed=22)
+    ctx.memory.trim()
+    first = lbvh.build(v, f, key_bits=30)
+    expected, ptr = first.nodes.copy(), first.nodes_buf.int_ptr
+    second = lbvh.build(v, f, key_bits=30)
+    assert second.nodes_buf.int_ptr != ptr            # first is alive: not shared
+    last = second.nodes_buf.int_ptr
+    del first, second                                  # second is the last dropped
+    gc.collect()
+    held = ctx.memory.pooled_bytes()
+    third = lbvh.build(v, f, key_bits=30)
+    assert third.nodes_buf.int_ptr == last
+    assert ctx.memory.pooled_bytes() < held                  # the outputs came from the pool
+    assert np.array_equal(third.nodes, expected)
+    third.validate()
+    del third
+    gc.collect()
+    lbvh.build(*random_soup(300, seed=1)).validate()   # other sizes: fresh buffers
+    ctx.memory.trim()
+    assert ctx.memory.pooled_bytes() == 0
+
+
+def test_free_to_pool_hands_a_buffer_to_the_next_allocation(ctx):
+    ctx.memory.trim()
+    mem = dev.MemoryTracker(ctx)
+    kept, dropped = mem.alloc(4096 * 3), mem.alloc(4096 * 5)
+    mem.free(kept, to_pool=True)
+    mem.free(dropped)
+    assert mem.live == 0
+    again = dev.MemoryTracker(ctx)
+    assert again.alloc(4096 * 3).int_ptr == kept.int_ptr      # the same buffer, pages mapped
+    assert ctx.memory.pooled_bytes() == 0                     # the other released, not pooled
+    ctx.memory.trim()

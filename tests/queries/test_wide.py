@@ -1,0 +1,130 @@
+"""Wide records (kernels/wide.cl) against their numpy twin (lbvh.queries.wide.wide_numpy).
+
+The device numbers records level by level with an atomic counter, the twin
+breadth first in order: records are compared through the binary node each one
+starts from. Boxes are copies and the greedy choice is made on the same float32
+areas, so everything else is compared exactly.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl as cl
+import pytest
+
+import lbvh
+from lbvh.layout import make_nodes
+from lbvh.queries.wide import WIDTHS, read_records, wide_numpy
+from test_traverse import chain_tree, cyclic_tree, scene, tree
+
+KINDS = ("lbvh30", "lbvh63", "lbvh_collapse", "sah", "host_median", "host_one_leaf")
+
+
+def _fresh(kind, scene_name="teapot"):
+    """A copy of a test tree without cached records (so widths do not interfere)."""
+    t = tree(scene_name, kind)
+    v, f = scene(scene_name)
+    return lbvh.BVH.from_arrays(t.nodes, t.prim_order, t.root, v, f, builder=kind, validate=False)
+
+
+def assert_equal_to_twin(bvh, width):
+    wide = bvh.wide_records(width=width)
+    twin = wide_numpy(bvh.nodes, bvh.root, width)
+    assert wide.packed and wide.width == width
+    assert wide.count == len(twin.record_node)
+    assert wide.stack_need == twin.stack_need
+    records, record_node = read_records(bvh.ctx, wide)
+    assert sorted(record_node.tolist()) == sorted(twin.record_node.tolist())
+    position = np.full(bvh.num_nodes, -1)
+    position[twin.record_node] = np.arange(len(twin.record_node))
+    mine = twin.records[position[record_node]]
+    # boxes, empty lanes included (+inf, -inf), bit for bit
+    assert records[:, :6].tobytes() == mine[:, :6].tobytes()
+    got_x, got_y = records[:, 6].view(np.int32), records[:, 7].view(np.int32)
+    want_x, want_y = mine[:, 6].view(np.int32), mine[:, 7].view(np.int32)
+    assert (got_y == want_y).all()
+    # a leaf lane keeps its words; an internal lane names the record of the same node
+    # the lanes kept for refits: the same binary nodes, lane by lane
+    if wide.count:
+        lanes = np.empty((wide.count, width), np.int32)
+        cl.enqueue_copy(bvh.ctx.queue, lanes, wide.lanes, is_blocking=True)
+        assert np.array_equal(lanes, twin.lanes[position[record_node]])
+    present = twin.lanes[position[record_node]] >= 0
+    inner = present & (want_y == 0)
+    assert (got_x[~inner] == want_x[~inner]).all()
+    assert (record_node[got_x[inner]] == twin.record_node[want_x[inner]]).all()
+    root = bvh.nodes[bvh.root]
+    if root["b"] < 0:
+        assert (wide.root_x, wide.root_y, wide.count) == (root["a"], root["b"], 0)
+    else:
+        assert (wide.root_x, wide.root_y) == (0, 0) and record_node[0] == bvh.root
+    return wide, twin
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+@pytest.mark.parametrize("kind", KINDS)
+def test_records_equal_their_numpy_twin(kind, width):
+    assert_equal_to_twin(_fresh(kind), width)
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+def test_twin_records_cover_the_tree_once(width):
+    """Independent of the kernel: every node of the binary tree is a lane of exactly
+    one record or the root, and every record but the root is one internal lane; a
+    record has its width of lanes unless all its lanes are leaves."""
+    bvh = _fresh("lbvh30", "suzanne")
+    twin = wide_numpy(bvh.nodes, bvh.root, width)
+    lanes = twin.lanes[twin.lanes >= 0]
+    internal = bvh.nodes["b"] >= 0
+    # binary nodes opened inside records appear in no lane
+    opened = np.setdiff1d(np.flatnonzero(internal), twin.record_node)
+    assert len(np.intersect1d(lanes, opened)) == 0
+    assert len(lanes) == len(np.unique(lanes)) == bvh.num_nodes - 1 - len(opened)
+    assert set(lanes[internal[lanes]].tolist()) == set(twin.record_node[1:].tolist())
+    used = (twin.lanes >= 0).sum(axis=1)
+    all_leaves = ~(internal[np.maximum(twin.lanes, 0)] & (twin.lanes >= 0)).any(axis=1)
+    assert ((used == width) | all_leaves).all()
+    assert (used >= 2).all()
+    # the records stand for every internal node: each opened (used - 1) of them
+    assert (used - 1).sum() == internal.sum()
+
+
+def test_the_largest_child_is_opened_first():
+    """Four leaves under a root whose left child is much larger than the right:
+    with width 3 the left child is opened, not the right one."""
+    lower = np.float32([[0, 0, 0], [0, 0, 0], [9, 0, 0], [0, 0, 0], [5, 0, 0], [9, 0, 0], [9.5, 0, 0]])
+    upper = np.float32([[10, 1, 1], [8, 1, 1], [10, 1, 1], [3, 1, 1], [8, 1, 1], [9.4, 1, 1], [10, 1, 1]])
+    children = np.array([[1, 2], [3, 4], [5, 6], [-1, -1], [-1, -1], [-1, -1], [-1, -1]])
+    ranges = np.array([[0, 0], [0, 0], [0, 0], [0, 1], [1, 1], [2, 1], [3, 1]])
+    nodes = make_nodes(lower, upper, children, ranges)
+    # with width 4 both are opened: the root record holds the four leaves
+    twin = wide_numpy(nodes, 0, 4)
+    assert twin.lanes.tolist() == [[3, 4, 5, 6]]
+    # a three-lane step of the same rule, read off the twin's first opening
+    from lbvh.queries.wide import _half_areas, _open_lanes
+    lanes = np.int32([[1, 2, -1]])
+    step = _open_lanes(lanes, nodes["a"], nodes["b"], nodes["b"] >= 0, _half_areas(nodes))
+    assert step.tolist() == [[3, 4, 2]]
+
+
+def test_stack_need_is_the_deepest_sum_of_pushes():
+    """A chain (each internal node has a leaf on the left): every record of width w
+    holds w - 1 leaves and the chain's next internal node, so w - 1 pushes per record."""
+    depth = 40
+    bvh, _, _ = chain_tree(depth)
+    for width in WIDTHS:
+        fresh = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, bvh.vertices,
+                                     bvh.faces, builder="chain")
+        wide, twin = assert_equal_to_twin(fresh, width)
+        records = -(-depth // (width - 1))
+        assert wide.count == records
+        assert wide.stack_need == depth
+
+
+def test_a_cycle_is_refused_with_the_node_named():
+    with pytest.raises(ValueError, match=r"node 0 is reached twice"):
+        cyclic_tree().wide_records()
+
+
+def test_bad_width_is_refused():
+    with pytest.raises(ValueError, match=r"width: 3; expected one of \(4, 8\)"):
+        _fresh("lbvh30").wide_records(width=3)
