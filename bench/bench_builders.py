@@ -13,7 +13,7 @@ rounds that run every builder once, so that the machine's noise hits all alike):
   once its builds have taken ``--build-budget`` seconds (the serial SAH on 1M
   triangles is built once);
 * the render: closest-hit traversal of one fixed set of primary rays (one per
-  pixel of the scene's camera from ``bench/cameras.json``), median wall time
+  pixel of the scene's camera from ``lbvh/data/cameras.json``), median wall time
   of ``lbvh.queries.traverse.intersect`` (ray packing, transfers and read-back
   included, counters off), hence rays per second;
 * the tree: SAH cost normalised by the root area (``lbvh.verification.quality.sah_cost``,
@@ -188,7 +188,7 @@ def tree_figures(bvh: lbvh.BVH) -> dict:
     q = tree_quality(bvh, C_NODE, C_TRI, epo=False)
     report = bvh.report()
     q["leaf_size_histogram"] = {str(k): int(v) for k, v in q["leaf_size_histogram"].items()}
-    q["key_bits"] = {32: 30, 64: 63}.get(report.key_bits, report.key_bits)   # code bits used
+    q["key_bits"] = report.key_bits   # code bits used: 30 or 63
     q["device_build_seconds"] = report.device_seconds or None
     return q
 

@@ -7,7 +7,7 @@
 For every scene, three ray sets, traced by every tracer:
 
 * ``closest``: primary rays, one per pixel of the scene's camera in
-  ``bench/cameras.json`` (Sponza uses ``sponza-atrium``: inside the open
+  ``lbvh/data/cameras.json`` (Sponza uses ``sponza-atrium``: inside the open
   atrium, every pixel hits), closest hit;
 * ``any``: the same rays, any hit (occlusion), ``tmax = inf``;
 * ``ao``: ambient occlusion rays, ``--ao-samples`` cosine-weighted rays per
@@ -50,7 +50,7 @@ bound :func:`lbvh.verification.error_bound.t_bound` with ``|cos a|`` floored at
 accepts another primitive at the same ``t``), for any hits the fraction with the same hit or miss. Rays on which
 a tracer and the reference disagree are judged (up to ``--judge`` of them per
 ray set) against the float64 oracle (:func:`lbvh.verification.oracle.brute_force`) with
-:class:`lbvh.verification.check.Judge`, which accepts any answer that float32 rounding can
+:class:`lbvh.verification.rules.Judge`, which accepts any answer that float32 rounding can
 give (edges, ties, grazing hits): each row says how many of its disagreements
 were right and how many wrong. Our rows also count stack overflows.
 
@@ -93,7 +93,7 @@ FULL_SCENES = ("sponza", "bunny", "terrain-1m")
 QUICK_SCENES = ("teapot",)
 FULL_RAYS = (1024, 1024)
 QUICK_RAYS = (96, 96)
-#: Scenes whose camera is another entry of bench/cameras.json.
+#: Scenes whose camera is another entry of lbvh/data/cameras.json.
 CAMERA_OF = {"sponza": "sponza-atrium"}
 QUERIES = ("closest", "any", "ao")
 #: ``--sah`` builds the serial SAH tree only up to this size (7 s on Sponza's 262K,
@@ -432,7 +432,7 @@ def agreement_figures(a: Answer, ref: Answer, bound: np.ndarray | None) -> dict:
 def judge(scene: common.Scene, rays: RaySet, ray_ids: np.ndarray, answers: dict[str, Answer]
           ) -> tuple[dict[str, np.ndarray], float]:
     """Which answers on rays ``ray_ids`` are right by the float64 oracle, within float32
-    rounding (:class:`lbvh.verification.check.Judge`); tracers that give only hit or miss are compared
+    rounding (:class:`lbvh.verification.rules.Judge`); tracers that give only hit or miss are compared
     with the oracle's hit or miss. Returns ``{name: bool (len(ray_ids),)}`` and seconds."""
     t0 = time.perf_counter()
     o, d = rays.origins[ray_ids], rays.directions[ray_ids]
@@ -476,7 +476,7 @@ def compare(scene: common.Scene, rays: RaySet, contestants: list[Contestant], ju
             "disagree": int(own[name].sum()), "judged": int(mine.sum()),
             "right": int((mine & ok).sum()), "wrong": int((mine & ~ok).sum()),
             "wrong_on_judged_rays": int((~ok).sum()),
-            "judged_by": "lbvh.verification.check.Judge" if a.prim is not None else "hit or miss vs the oracle",
+            "judged_by": "lbvh.verification.rules.Judge" if a.prim is not None else "hit or miss vs the oracle",
         }
     return out
 
@@ -802,7 +802,7 @@ in brackets, the range of the per-round ratios (same round, same noise). `agree`
 with the reference's hit or miss, primitive and t (within 16 u (t + s) / max(|cos|, 1e-3));
 `agree (ties)` also accepts another primitive at the same t; any hits: the same hit or miss.
 `disagree (oracle)`: rays not agreeing even with ties, and of those judged against the float64
-oracle (lbvh.verification.check.Judge: any answer float32 rounding can give is right) how many this tracer
+oracle (lbvh.verification.rules.Judge: any answer float32 rounding can give is right) how many this tracer
 got right or wrong. `overflow`: our rays whose traversal stack overflowed."""
 
 

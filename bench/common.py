@@ -9,7 +9,7 @@ another one: what two of them need lives here.
   script imports this module before numpy);
 * scenes: the shipped (``scenes/``), shared (``../shared/scenes``) and
   generated (:mod:`lbvh.verification.meshes`) scenes by name, the cameras of
-  ``bench/cameras.json``, :class:`Scene` and its loading;
+  ``lbvh/data/cameras.json``, :class:`Scene` and its loading;
 * the peers: :class:`Embree` (embreex) and :class:`Warp` (warp-lang on the
   CPU), each with its build, closest-hit and any-hit query, and
   :func:`load_peers`;
@@ -53,6 +53,7 @@ from lbvh.verification import meshes  # noqa: E402
 
 import lbvh  # noqa: E402
 from lbvh import device as dev  # noqa: E402
+from lbvh.progress import bar as progress_bar  # noqa: E402
 from lbvh.rendering.camera import Camera  # noqa: E402
 from lbvh.rendering.image import write_image  # noqa: E402
 from lbvh.rendering.render import display, shade_primary  # noqa: E402
@@ -63,7 +64,7 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 SHIPPED_SCENES = REPO / "scenes"
 SHARED_SCENES = REPO.parent / "shared" / "scenes"
-CAMERAS = HERE / "cameras.json"
+CAMERAS = lbvh.data.views_path()   # one set of views: the one that ships with lbvh
 #: Default output folder of the benches (git-ignored).
 DEFAULT_OUT = HERE / "out"
 
@@ -172,7 +173,7 @@ def loaded_scenes(names: list[str], load: Callable[[str], "Scene | str"], progre
         scene = load(name)
         if isinstance(scene, str):
             skipped.append({"scene": name, "reason": scene})
-            progress.done += steps
+            progress.skip(steps)
             continue
         yield scene
 
@@ -447,37 +448,28 @@ def interleaved_rounds(contestants: list[Any], repeats: int, budget: float,
 
 
 class Progress:
-    """A one-line text progress bar on stderr (a line per step when not a terminal)."""
+    """The benches' progress: a tqdm bar on stderr (:func:`lbvh.progress.bar`), shown
+    only when stderr is a terminal; ``note`` names the step running."""
 
-    def __init__(self, total: int, stream=sys.stderr) -> None:
-        self.total, self.done, self.stream = max(total, 1), 0, stream
-        self.start = time.perf_counter()
-        self.label = ""
-        self.tty = stream.isatty()
+    def __init__(self, total: int) -> None:
+        self.bar = progress_bar(max(total, 1), "bench", "step")
 
     def begin(self, label: str) -> None:
-        self.label = label
+        self.bar.set_description(label, refresh=False)
         self.note("")
 
     def note(self, step: str) -> None:
-        width = 24
-        filled = int(width * self.done / self.total)
-        bar = "#" * filled + "-" * (width - filled)
-        text = (f"[{bar}] {self.done}/{self.total} {time.perf_counter() - self.start:6.0f} s  "
-                f"{self.label} {step}")
-        if self.tty:
-            self.stream.write("\r" + text.ljust(100)[:100])
-        else:
-            self.stream.write(text + "\n")
-        self.stream.flush()
+        self.bar.set_postfix_str(step)
 
     def advance(self) -> None:
-        self.done += 1
+        self.bar.update(1)
+
+    def skip(self, steps: int) -> None:
+        """Count ``steps`` as done without running them (a scene that did not load)."""
+        self.bar.update(steps)
 
     def close(self) -> None:
-        self.note("done")
-        if self.tty:
-            self.stream.write("\n")
+        self.bar.close()
 
 
 # -- command line and report of the benches that trace camera rays ------------------------

@@ -4,6 +4,7 @@ Entry points:
     lbvh.build(vertices, faces, builder="lbvh"|"sah", device=None, collapse=False,
                options=None | lbvh.LBVHOptions | lbvh.SAHOptions, **fields) -> lbvh.BVH
     bvh.intersect(origins, directions) / bvh.occluded(...)  (ray queries) -> lbvh.Hits
+    bvh.closest_points(points, max_distance=inf)  (point queries) -> lbvh.Closest
     lbvh.load(path) -> lbvh.BVH
     lbvh.render(bvh, lbvh.Camera(...), mode)
     lbvh.sah_cost(bvh), lbvh.tree_quality(bvh)  (the tree's quality)
@@ -31,10 +32,12 @@ The package, in layers (a module imports only from layers above it in this list)
 ``cli``             the ``lbvh`` command
 ==================  =================================================================
 """
+from . import data
 from .api import build, load
 from .builders.options import CollapseOptions, LBVHOptions, SAHOptions
 from .bvh import BVH
 from .device import CONTEXT_CHECKS, DeviceError
+from .queries.closest import Closest
 from .queries.traverse import Hits
 from .rendering.camera import Camera
 from .rendering.render import render
@@ -49,6 +52,6 @@ from .version import __version__
 if _self_test not in CONTEXT_CHECKS:
     CONTEXT_CHECKS.append(_self_test)
 
-__all__ = ["build", "load", "BVH", "Hits", "LBVHOptions", "SAHOptions", "CollapseOptions",
+__all__ = ["build", "load", "BVH", "Hits", "Closest", "LBVHOptions", "SAHOptions", "CollapseOptions",
            "render", "Camera", "load_scene", "sah_cost", "tree_quality", "BVHValidationError",
-           "DeviceError", "__version__"]
+           "DeviceError", "data", "__version__"]

@@ -19,17 +19,35 @@ from .builders.collapse import collapse
 from .builders.options import CollapseOptions, LBVHOptions, SAHOptions, make, options_from
 from .bvh import SAVE_FORMAT_VERSION, BVH
 from .layout import NODE_DTYPE
-from .mesh import as_mesh
+from .mesh import MissingFileError, as_mesh
+from .rendering.scene import load_mesh
 from .tree import Mesh
+
+
+class _Default:
+    """An option the caller did not give: the options class's documented default applies."""
+
+    def __repr__(self) -> str:
+        return "<default>"
+
+
+DEFAULT = _Default()
 
 
 def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: Any = None,
           collapse: bool | CollapseOptions = False,
-          options: LBVHOptions | SAHOptions | None = None, **fields: Any) -> BVH:
+          options: LBVHOptions | SAHOptions | None = None,
+          key_bits: int | str | _Default = DEFAULT,
+          auto_duplicate_fraction: float | _Default = DEFAULT,
+          treelet_rounds: int | _Default = DEFAULT, c_node: float | _Default = DEFAULT,
+          c_tri: float | _Default = DEFAULT, max_leaf_size: int | _Default = DEFAULT,
+          progress: bool | None = None, **unknown: Any) -> BVH:
     """Build a BVH over a triangle mesh: the device LBVH, or the serial SAH reference.
 
     Args:
-        vertices: ``(V, 3)`` float coordinates, or a ``trimesh.Trimesh`` (then no ``faces``).
+        vertices: ``(V, 3)`` float coordinates, or a ``trimesh.Trimesh`` or the path of a
+            mesh file (OBJ, PLY, STL, glTF..., read with trimesh; the meshes of a file
+            of several are flattened into one) (then no ``faces``).
         faces: ``(F, 3)`` integer vertex indices.
         builder: ``"lbvh"`` (device, Karras 2012) or ``"sah"`` (serial full-sweep SAH on
             the host, the reference).
@@ -40,11 +58,15 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
             is cheaper (:mod:`lbvh.builders.collapse`).
         options: the builder's options as data, :class:`lbvh.LBVHOptions` or
             :class:`lbvh.SAHOptions` (defaults documented there).
-        fields: the same fields as keywords: for ``"lbvh"`` those of ``LBVHOptions``
-            (``key_bits`` 30, 63 or ``"auto"``; ``auto_duplicate_fraction``;
-            ``treelet_rounds``) and, with ``collapse=True``, those of
-            ``CollapseOptions`` (``c_node``, ``c_tri``, ``max_leaf_size``); for
-            ``"sah"`` those of ``SAHOptions``.
+        progress: a progress bar on stderr for the long builds (the SAH reference
+            over 200K triangles or more): ``None`` (default) when stderr is a
+            terminal, ``True`` or ``False`` to force it (:mod:`lbvh.progress`).
+        key_bits, auto_duplicate_fraction, treelet_rounds: the fields of
+            ``LBVHOptions`` as keywords (``key_bits``: 30, 63 or ``"auto"``);
+            not given, the documented default.
+        c_node, c_tri, max_leaf_size: the fields of ``SAHOptions`` (``"sah"``) or, with
+            ``collapse=True``, of ``CollapseOptions``; not given, the default.
+        unknown: any other name is refused with a ``ValueError`` naming it.
 
     Returns:
         :class:`lbvh.BVH` whose buffers stay on the device. ``bvh.report()``
@@ -54,8 +76,18 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
         ValueError: bad mesh (NaN/inf, out-of-range indices, non-triangles, empty,
             wrong shape or dtype) or bad option; nothing is built.
     """
-    build_options, collapse_options = options_from(builder, collapse, dict(fields), options)
-    v, f = as_mesh(vertices, faces)
+    given = {"key_bits": key_bits, "auto_duplicate_fraction": auto_duplicate_fraction,
+             "treelet_rounds": treelet_rounds, "c_node": c_node, "c_tri": c_tri,
+             "max_leaf_size": max_leaf_size}
+    fields = {**{k: v for k, v in given.items() if v is not DEFAULT}, **unknown}
+    build_options, collapse_options = options_from(builder, collapse, fields, options)
+    if isinstance(vertices, (str, os.PathLike)):
+        if faces is not None:
+            raise ValueError(f"vertices: a path ({os.fspath(vertices)!r}) was passed together "
+                             "with faces; pass the path alone")
+        v, f = load_mesh(vertices)   # every mesh of the file, flattened into one, checked
+    else:
+        v, f = as_mesh(vertices, faces)
     ctx = dev.get_context(device)
     if builder == "lbvh":
         pipeline.check_fits(ctx, len(f))
@@ -65,7 +97,7 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
         ctx.queue.finish()
         upload = time.perf_counter() - t0
         if builder == "sah":
-            tree = sah.build_tree(ctx, mesh, build_options)
+            tree = sah.build_tree(ctx, mesh, build_options, progress)
             tree.report.upload_seconds += upload
             return BVH(mesh, tree)
         return _build_lbvh(ctx, mesh, upload, build_options, collapse_options)
@@ -99,8 +131,15 @@ def collapse_leaves(bvh: BVH, **options: Any) -> BVH:
 
 
 def load(path: str | os.PathLike, device: Any = None) -> BVH:
-    """Read a tree written by :meth:`BVH.save` and upload it to the device."""
+    """Read a tree written by :meth:`BVH.save` and upload it to the device.
+
+    Raises ``FileNotFoundError`` (:class:`lbvh.mesh.MissingFileError`, also a
+    ``ValueError``) for a missing file, ``ValueError`` for a file that is not
+    a saved tree or holds a broken one.
+    """
     path = Path(path)
+    if not path.is_file():
+        raise MissingFileError(f"{path}: no such file" + (" (a folder)" if path.is_dir() else ""))
     try:
         data = np.load(path, allow_pickle=False)
     except Exception as exc:  # OSError, ValueError, zipfile.BadZipFile, EOFError...

@@ -12,18 +12,21 @@ from __future__ import annotations
 
 import os
 import weakref
-from pathlib import Path
+from concurrent.futures import Future
 from typing import Any
 
 import numpy as np
 import pyopencl as cl
+import pyopencl.array as cl_array
 
 from . import device as dev
 from .builders.refit import refit_boxes
 from .layout import NODE_DTYPE, children_of, is_leaf, node_depths, parents_of, prim_range_of
 from .mesh import as_faces, as_vertices
-from .queries import traverse
-from .queries.traverse import Hits
+from .queries import closest, traverse
+from .queries.closest import Closest
+from .queries.rays import InvalidRays
+from .queries.traverse import DeviceHitArrays, Hits
 from .queries.wide import Wide, make_wide, release_wide, wide_buffers, write_records
 from .report import BuildReport, tree_statistics
 from .tree import Mesh, Tree, upload_tree
@@ -232,23 +235,67 @@ class BVH:
         return self.tree.leaf_walks()
 
     # -- ray queries (lbvh/queries/traverse.py, kernels/traverse.cl) ------------
-    def intersect(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf,
-                  **options: Any) -> Hits:
-        """Closest hit of each ray; see :func:`lbvh.queries.traverse.intersect`."""
-        return traverse.intersect(self, origins, directions, tmin, tmax, **options)
+    def intersect(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
+                  triangle_test: traverse.TriangleTest = "watertight", counters: bool = False,
+                  batch_size: int = traverse.DEFAULT_BATCH, stack_size: int | None = None,
+                  invalid_rays: InvalidRays = "raise") -> Hits | DeviceHitArrays:
+        return traverse.intersect(self, origins, directions, tmin, tmax,
+                                  triangle_test=triangle_test, counters=counters,
+                                  batch_size=batch_size, stack_size=stack_size,
+                                  invalid_rays=invalid_rays)
 
-    def occluded(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf,
-                 **options: Any) -> np.ndarray | Hits:
-        """Whether each ray hits anything in [tmin, tmax]: ``bool (N,)``, or a
-        :class:`lbvh.Hits` with ``return_hits=True``; see :func:`lbvh.queries.traverse.occluded`."""
-        return traverse.occluded(self, origins, directions, tmin, tmax, **options)
+    def occluded(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
+                 triangle_test: traverse.TriangleTest = "watertight", counters: bool = False,
+                 batch_size: int = traverse.DEFAULT_BATCH, stack_size: int | None = None,
+                 return_hits: bool = False, invalid_rays: InvalidRays = "raise"
+                 ) -> np.ndarray | Hits | cl_array.Array | DeviceHitArrays:
+        return traverse.occluded(self, origins, directions, tmin, tmax,
+                                 triangle_test=triangle_test, counters=counters,
+                                 batch_size=batch_size, stack_size=stack_size,
+                                 return_hits=return_hits, invalid_rays=invalid_rays)
+
+    def intersect_async(self, origins: Any, directions: Any, tmin: Any = 0.0,
+                        tmax: Any = np.inf, *, triangle_test: traverse.TriangleTest = "watertight",
+                        counters: bool = False, batch_size: int = traverse.DEFAULT_BATCH,
+                        stack_size: int | None = None, invalid_rays: InvalidRays = "raise"
+                        ) -> "Future[Hits | DeviceHitArrays]":
+        return traverse.intersect_async(self, origins, directions, tmin, tmax,
+                                        triangle_test=triangle_test, counters=counters,
+                                        batch_size=batch_size, stack_size=stack_size,
+                                        invalid_rays=invalid_rays)
+
+    def occluded_async(self, origins: Any, directions: Any, tmin: Any = 0.0,
+                       tmax: Any = np.inf, *, triangle_test: traverse.TriangleTest = "watertight",
+                       counters: bool = False, batch_size: int = traverse.DEFAULT_BATCH,
+                       stack_size: int | None = None, return_hits: bool = False,
+                       invalid_rays: InvalidRays = "raise") -> "Future[Any]":
+        return traverse.occluded_async(self, origins, directions, tmin, tmax,
+                                       triangle_test=triangle_test, counters=counters,
+                                       batch_size=batch_size, stack_size=stack_size,
+                                       return_hits=return_hits, invalid_rays=invalid_rays)
+
+    intersect.__doc__ = traverse.query_doc("intersect", target=False)
+    occluded.__doc__ = traverse.query_doc("occluded", target=False)
+    intersect_async.__doc__ = traverse.async_doc("intersect")
+    occluded_async.__doc__ = traverse.async_doc("occluded")
+
+    # -- point queries (lbvh/queries/closest.py, kernels/closest.cl) ------------
+    def closest_points(self, points: Any, max_distance: float = np.inf, *,
+                       batch_size: int = 1 << 20) -> Closest:
+        """The closest point of the mesh to each query point within ``max_distance``:
+        distance, point, triangle and barycentrics; see
+        :func:`lbvh.queries.closest.closest_points`."""
+        return closest.closest_points(self, points, max_distance, batch_size=batch_size)
 
     # -- persistence ------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:
-        """Write the tree and its mesh to a ``.npz`` file readable with plain numpy."""
-        np.savez(Path(path), format_version=np.int32(SAVE_FORMAT_VERSION), nodes=self.nodes,
-                 parent=self.parent, prim_order=self.prim_order, root=np.int32(self.root),
-                 vertices=self.vertices, faces=self.faces, builder=np.str_(self.builder))
+        """Write the tree and its mesh to ``path`` exactly (no suffix is added; ``.npz``
+        is the custom), an ``.npz`` archive readable with plain numpy; :func:`lbvh.load`
+        reads it back."""
+        with open(path, "wb") as out:   # a file object: numpy adds no ".npz" to the name
+            np.savez(out, format_version=np.int32(SAVE_FORMAT_VERSION), nodes=self.nodes,
+                     parent=self.parent, prim_order=self.prim_order, root=np.int32(self.root),
+                     vertices=self.vertices, faces=self.faces, builder=np.str_(self.builder))
 
     def __repr__(self) -> str:
         return (f"<lbvh.BVH {self.builder}: {self.num_prims} triangles, {self.num_nodes} nodes "

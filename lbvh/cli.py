@@ -2,8 +2,14 @@
 
 ``lbvh render SCENE -o image.png`` renders a scene; ``lbvh info SCENE`` prints
 the build report of its BVH; ``lbvh devices`` lists the OpenCL devices;
-``lbvh check`` runs the hard-case suite (:mod:`lbvh.check`) and exits 1 if a
-case fails.
+``lbvh check`` runs the hard-case suite (:mod:`lbvh.verification.check`) and exits 1 if a
+case fails; ``lbvh --version`` prints the version.
+
+Where a command takes a scene it also takes the name of a mesh that ships with
+the package (``lbvh render teapot -o teapot.png``, :mod:`lbvh.data`); a file of
+that name wins. ``lbvh render`` takes a camera (``--eye``, ``--target``,
+``--up``, ``--fov``, or ``--view NAME`` from a views file) and prints which it
+used on its ``camera:`` line.
 
 Errors (bad files, bad meshes, bad options, device problems) end the program
 with a one-line message on stderr and exit status 2, not a traceback.
@@ -11,22 +17,28 @@ with a one-line message on stderr and exit status 2, not a traceback.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
 import re
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from .api import build
 from .builders.options import BUILDERS
 from .device import DeviceError, all_devices, describe, find_device, get_context, pocl_target
-from .rendering.camera import DEFAULT_SIZE, MAX_SIDE, frame_bounds
+from .data import MESHES
+from .rendering.camera import (DEFAULT_FOV, DEFAULT_SIZE, MAX_SIDE, Camera, frame_bounds, view_camera,
+                               views_name)
 from .rendering.image import image_kind
 from .rendering.render import AO_SAMPLES, MODES, check_mode, render
-from .rendering.scene import load_scene
+from .rendering.scene import Scene, find_scene, load_scene
 from .verification import selftest
 from .verification.check import add_arguments as add_check_arguments
 from .verification.check import cmd_check as run_checks
+from .version import __version__
 
 
 class UsageError(ValueError):
@@ -37,6 +49,9 @@ class _Parser(argparse.ArgumentParser):
     # argparse prints the usage and exits on a bad option; we want the same
     # one-line error as for every other problem, and main() to return the status.
     def error(self, message: str) -> None:  # type: ignore[override]
+        vector = re.match(r"argument (--eye|--target|--up): expected one argument", message)
+        if vector:   # argparse takes "-1,2,3" for an option
+            message += f" (write {vector.group(1)}=-1,2,3 for one that starts with a minus)"
         raise UsageError(f"{message} (see {self.prog} --help)")
 
 
@@ -52,6 +67,71 @@ def parse_size(text: str) -> tuple[int, int]:
     if not (1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE):
         raise ValueError(f"--size: {text!r}: each side must be 1 to {MAX_SIDE} pixels")
     return width, height
+
+
+VECTOR_SEPARATOR = re.compile(r"[,\s]+")
+
+
+def parse_vector(option: str, text: str) -> tuple[float, float, float]:
+    """``"X,Y,Z"`` (commas or spaces) -> three finite floats; ``ValueError`` naming
+    ``option`` and the text otherwise."""
+    parts = [part for part in VECTOR_SEPARATOR.split(text.strip()) if part]
+    try:
+        values = tuple(float(part) for part in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3:
+        raise ValueError(f"{option}: {text!r} is not X,Y,Z (three numbers, e.g. {option}=0,1,5)")
+    if not all(math.isfinite(value) for value in values):
+        raise ValueError(f"{option}: {text!r} has a NaN or infinite number")
+    return values  # type: ignore[return-value]
+
+
+def choose_camera(args: argparse.Namespace, scene: Scene,
+                  size: tuple[int, int] | None) -> tuple[Camera, str]:
+    """The camera ``lbvh render`` uses, and where it comes from (its ``camera:`` line).
+
+    The base camera is ``--view`` (from ``--views`` or the shipped views file),
+    else ``--eye`` with ``--target`` (up ``0,1,0`` and fov 45 unless given), else the
+    scene file's camera, else one framed from the scene's bounds (with ``--fov``);
+    then each of ``--eye``, ``--target``, ``--up``, ``--fov`` given replaces that
+    part of it. ``--size`` gives the image size in every case.
+    """
+    given: dict[str, Any] = {name: parse_vector(f"--{name}", getattr(args, name))
+                             for name in ("eye", "target", "up") if getattr(args, name) is not None}
+    if args.fov is not None:
+        if not 0.0 < args.fov < 180.0:   # NaN fails too
+            raise ValueError(f"--fov: {args.fov!r} degrees, expected more than 0 and less than 180")
+        given["fov"] = args.fov
+    if args.views is not None and args.view is None:
+        raise ValueError(f"--views {args.views}: give --view NAME, the view to use from it")
+    if args.view is not None:
+        camera = view_camera(args.view, args.views, size)
+        source = f"--view {args.view} from {views_name(args.views)}"
+    elif "eye" in given and "target" in given:
+        source = "from " + "/".join(f"--{name}" for name in given)
+        camera = Camera(given.pop("eye"), given.pop("target"), given.pop("up", (0.0, 1.0, 0.0)),
+                        given.pop("fov", DEFAULT_FOV), *(size or DEFAULT_SIZE))
+    elif scene.camera is not None:
+        camera = scene.camera.resized(*size) if size else scene.camera
+        source = "from the scene file"
+    else:
+        camera = frame_bounds(scene.vertices.min(axis=0), scene.vertices.max(axis=0),
+                              *(size or DEFAULT_SIZE), fov=given.get("fov", DEFAULT_FOV))
+        source = "framed automatically"
+    fields = {"eye": "position", "target": "target", "up": "up", "fov": "fov"}
+    if given:
+        camera = dataclasses.replace(camera, **{fields[name]: value for name, value in given.items()})
+        source += ", with " + ", ".join(f"--{name}" for name in given)
+    return camera, source
+
+
+def describe_camera(camera: Camera) -> str:
+    """The camera as the options that give it again."""
+    def vector(values: Any) -> str:
+        return ",".join(f"{float(value):.6g}" for value in values)
+    return (f"--eye={vector(camera.position)} --target={vector(camera.target)} "
+            f"--up={vector(camera.up)} --fov={camera.fov:.6g} --size={camera.width}x{camera.height}")
 
 
 def _add_build_options(p: argparse.ArgumentParser) -> None:
@@ -74,6 +154,12 @@ def _build(scene, args: argparse.Namespace):
                  treelet_rounds=args.treelets, key_bits=args.keys, device=args.device)
 
 
+def _scene_name(text: str) -> str:
+    """The scene as typed, with the file read when it is a shipped mesh's name."""
+    file = find_scene(text)
+    return text if str(file) == text else f"{text} (shipped with lbvh: {file})"
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene)
     bvh = _build(scene, args)
@@ -83,7 +169,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(report.as_dict(), indent=2))
     else:
-        print(f"scene:       {args.scene}")
+        print(f"scene:       {_scene_name(args.scene)}")
         print(report)
         if args.validate:
             print("validate:    ok")
@@ -101,11 +187,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.ao_samples < 1:
         raise ValueError(f"--ao-samples: {args.ao_samples}, expected at least 1")
     scene = load_scene(args.scene)
-    if scene.camera is not None:
-        camera = scene.camera.resized(*size) if size else scene.camera
-    else:
-        camera = frame_bounds(scene.vertices.min(axis=0), scene.vertices.max(axis=0),
-                              *(size or DEFAULT_SIZE))
+    camera, camera_source = choose_camera(args, scene, size)
     start = time.perf_counter()
     bvh = _build(scene, args)
     build_seconds = time.perf_counter() - start
@@ -115,7 +197,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     report = bvh.report()
     device_time = f" (device {report.device_seconds * 1e3:.1f} ms)" if report.device_seconds else ""
     hits = int((result.primary_hits.prim >= 0).sum())
-    print(f"scene:     {args.scene}: {bvh.num_prims:,} triangles")
+    print(f"scene:     {_scene_name(args.scene)}: {bvh.num_prims:,} triangles")
+    print(f"camera:    {camera_source}: {describe_camera(camera)}")
     print(f"device:    {bvh.ctx.name}")
     print(f"build:     {args.builder} in {build_seconds * 1e3:.1f} ms{device_time}, "
           f"depth {report.depth}")
@@ -165,17 +248,44 @@ def cmd_check(args: argparse.Namespace) -> int:
     return run_checks(args)
 
 
+SCENE_HELP = ("mesh file (OBJ, PLY, STL, GLB/GLTF, OFF), scene description (.json), or the name "
+              f"of a mesh that ships with lbvh ({', '.join(MESHES)}; a file of that name wins)")
+
+
+def _add_camera_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group(
+        "camera", "Default: the scene file's camera, else one framed from the scene's bounds. "
+        "--view takes a saved view; --eye with --target places a camera; each of --eye, --target, "
+        "--up, --fov also changes that part of the camera it is given with. The output's camera: "
+        "line says which was used. Write a vector that starts with a minus as --eye=-1,2,3.")
+    g.add_argument("--eye", metavar="X,Y,Z", help="camera position")
+    g.add_argument("--target", metavar="X,Y,Z", help="the point the camera looks at")
+    g.add_argument("--up", metavar="X,Y,Z",
+                   help="the camera's up direction (with --eye and --target: default 0,1,0)")
+    g.add_argument("--fov", type=float, metavar="DEG",
+                   help=f"vertical field of view in degrees (with --eye and --target, or framed "
+                        f"automatically: default {DEFAULT_FOV:g})")
+    g.add_argument("--view", metavar="NAME",
+                   help="a named view from the views file (e.g. teapot, sponza-atrium)")
+    g.add_argument("--views", metavar="FILE",
+                   help="views file: a JSON object of named cameras, each "
+                        '{"position": [x, y, z], "target": [x, y, z], "up": [x, y, z], "fov": deg} '
+                        "(default: the one that ships with lbvh, the benchmark scenes' views, "
+                        "as lbvh/data/cameras.json)")
+
+
 def make_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="lbvh", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"lbvh {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("info", help="build a scene's BVH and print the report")
-    p.add_argument("scene", help="mesh file (OBJ, PLY, STL, GLB/GLTF, OFF) or scene description")
+    p.add_argument("scene", help=SCENE_HELP)
     _add_build_options(p)
     p.add_argument("--validate", action="store_true", help="also run the tree validator")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=cmd_info)
     p = sub.add_parser("render", help="render a scene to an image file")
-    p.add_argument("scene", help="mesh file (OBJ, PLY, STL, GLB/GLTF, OFF) or scene description (.json)")
+    p.add_argument("scene", help=SCENE_HELP)
     p.add_argument("-o", "--output", required=True,
                    help="image file: .png/.jpg (8-bit picture) or .exr/.tif (float values)")
     p.add_argument("--mode", default="normals", choices=MODES,
@@ -186,6 +296,7 @@ def make_parser() -> argparse.ArgumentParser:
                    help=f"ambient occlusion rays per pixel (default {AO_SAMPLES})")
     p.add_argument("--triangle-test", default="watertight", choices=["watertight", "moller"],
                    help="ray/triangle test (default: watertight)")
+    _add_camera_options(p)
     _add_build_options(p)
     p.set_defaults(func=cmd_render)
     p = sub.add_parser("check", help="run the hard-case suite with every builder and report")
@@ -202,7 +313,10 @@ def make_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = make_parser()
     try:
-        args = parser.parse_args(argv)
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit as exc:   # --help and --version print and exit 0
+            return exc.code if isinstance(exc.code, int) else 0
         return args.func(args)
     except KeyboardInterrupt:
         print("lbvh: interrupted", file=sys.stderr)

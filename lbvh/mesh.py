@@ -16,6 +16,11 @@ _FLOAT32_MAX = float(np.finfo(np.float32).max)
 MAX_TRIANGLES = 2**27 - 1
 
 
+class MissingFileError(FileNotFoundError, ValueError):
+    """A file the caller named does not exist: a ``FileNotFoundError``, and a
+    ``ValueError`` as every other bad input of the package is."""
+
+
 def _first_row(mask: np.ndarray) -> int:
     return int(np.flatnonzero(mask.reshape(len(mask), -1).any(axis=1))[0])
 
@@ -91,14 +96,43 @@ def as_faces(faces: Any, num_vertices: int) -> np.ndarray:
     return np.ascontiguousarray(wide, dtype=np.uint32)
 
 
+def _kind(value: Any) -> str:
+    """How a value is named in messages: its module and class."""
+    cls = type(value)
+    module = cls.__module__.split(".")[0]
+    return cls.__name__ if module == "builtins" else f"{module}.{cls.__name__}"
+
+
 def as_mesh(vertices: Any, faces: Any = None) -> tuple[np.ndarray, np.ndarray]:
-    """Accept ``(vertices, faces)`` arrays or a ``trimesh.Trimesh``; validate both."""
+    """Accept ``(vertices, faces)`` arrays or a ``trimesh.Trimesh``; validate both.
+
+    Anything else is refused with a message that says what was passed and
+    what to pass instead (a ``trimesh.Scene``, a ``PointCloud``, a mesh object
+    together with faces, ...). Paths are read by :func:`lbvh.build` itself.
+    """
+    is_mesh = hasattr(vertices, "vertices") and hasattr(vertices, "faces")
     if faces is None:
-        if hasattr(vertices, "vertices") and hasattr(vertices, "faces"):
-            mesh = vertices
-            vertices, faces = mesh.vertices, mesh.faces
-        else:
-            raise ValueError("faces: missing (pass vertices and faces, or a trimesh.Trimesh)")
+        if is_mesh:
+            return as_mesh(vertices.vertices, vertices.faces)
+        raise ValueError(_missing_faces(vertices))
+    if is_mesh:
+        raise ValueError(f"vertices: a {_kind(vertices)} was passed together with faces; pass the "
+                         "mesh alone (lbvh.build(mesh)) or its arrays "
+                         "(lbvh.build(mesh.vertices, mesh.faces))")
     v = as_vertices(vertices)
     f = as_faces(faces, len(v))
     return v, f
+
+
+def _missing_faces(value: Any) -> str:
+    kind = _kind(value)
+    if hasattr(value, "geometry") and isinstance(getattr(value, "geometry"), dict):
+        count = len(value.geometry)
+        return (f"faces: missing: a {kind} of {count} geometr{'y' if count == 1 else 'ies'} was "
+                "passed; lbvh builds one mesh: pass scene.to_mesh() for all of them flattened "
+                "into one, or one of scene.geometry's meshes")
+    if hasattr(value, "vertices"):
+        return (f"faces: missing: a {kind} has vertices but no faces; a BVH is built over "
+                "triangles (pass a triangle mesh, or vertices and faces)")
+    return (f"faces: missing: got a {kind} alone; pass vertices and faces, a trimesh.Trimesh, "
+            "or the path of a mesh file")

@@ -17,6 +17,7 @@ class BuildReport:
     device: str
     builder: str
     num_triangles: int
+    #: Bits of the Morton codes, as ``lbvh.build(key_bits=...)`` takes them: 30 or 63.
     key_bits: int | None = None
     key_choice: str = ""
     duplicate_codes: int | None = None
@@ -58,7 +59,7 @@ class BuildReport:
                  f"builder:     {self.builder}",
                  f"triangles:   {self.num_triangles:,}"]
         if self.key_bits is not None:
-            lines.append(f"morton keys: {self.key_bits - (2 if self.key_bits == 32 else 1)}-bit "
+            lines.append(f"morton keys: {self.key_bits}-bit "
                          f"({self.key_choice}); duplicate codes: {self.duplicate_codes:,}")
         if self.phase_seconds:
             phases = "  ".join(f"{k} {v * 1e3:.2f}" for k, v in self.phase_seconds.items())

@@ -33,6 +33,7 @@ import pytest
 
 import lbvh
 from lbvh.cli import main as cli_main
+from lbvh.mesh import MissingFileError
 from lbvh.rendering.camera import frame_bounds
 from lbvh.verification.hard_cases import cube_mesh
 
@@ -174,6 +175,14 @@ def _load(name: str, bad: str, expect, fragment: str = "", bug: str | None = Non
     return Row("lbvh.load", bad, lambda e: lbvh.load(e.path(name)), expect, fragment, bug)
 
 
+def _render(bad: str, options: list[str], fragment: str) -> Row:
+    """A command row that renders the environment's good mesh with bad ``options``
+    (``{tmp}`` in an option is the environment's folder)."""
+    return Row("lbvh render", bad, lambda e: [
+        "render", e.path("good.obj"), "-o", e.path("out.png"),
+        *(o.replace("{tmp}", str(e.tmp)) for o in options)], SystemExit, fragment, command=True)
+
+
 ROWS: list[Row] = [
     # lbvh.build
     Row("lbvh.build", "NaN coordinate", lambda e: _b(e, _nan(e), e.f), ValueError, "vertex 3"),
@@ -206,6 +215,18 @@ ROWS: list[Row] = [
     Row("lbvh.build", "no faces", lambda e: _b(e, e.v, np.zeros((0, 3), np.uint32)),
         ValueError, "no triangles"),
     Row("lbvh.build", "faces missing", lambda e: _b(e, e.v), ValueError, "faces: missing"),
+    Row("lbvh.build", "a trimesh.Scene", lambda e: _b(e, __import__("trimesh").Scene(
+        [__import__("trimesh").Trimesh(e.v, e.f, process=False)] * 2)), ValueError,
+        "a trimesh.Scene of 2 geometries"),
+    Row("lbvh.build", "a trimesh.PointCloud", lambda e: _b(e, __import__("trimesh").PointCloud(e.v)),
+        ValueError, "has vertices but no faces"),
+    Row("lbvh.build", "a mesh and its faces", lambda e: _b(
+        e, __import__("trimesh").Trimesh(e.v, e.f, process=False), e.f), ValueError,
+        "pass the mesh alone"),
+    Row("lbvh.build", "path of a missing file", lambda e: _b(e, str(e.path("absent.obj"))),
+        MissingFileError, "absent.obj: no such file"),
+    Row("lbvh.build", "path of an empty file", lambda e: _b(e, e.path("empty.glb")), ValueError,
+        "the file is empty"),
     Row("lbvh.build", "unknown builder", lambda e: _b(e, e.v, e.f, builder="bvh2"),
         ValueError, "'bvh2'"),
     Row("lbvh.build", "key_bits=32", lambda e: _b(e, e.v, e.f, key_bits=32), ValueError, "key_bits: 32"),
@@ -269,12 +290,31 @@ ROWS: list[Row] = [
         TypeError, "leaf_first"),
     Row("bvh.intersect", "no rays", lambda e: e.bvh.intersect(np.zeros((0, 3)), np.zeros((0, 3))),
         None),
+    Row("bvh.intersect", "unknown invalid_rays", lambda e: e.bvh.intersect(
+        e.o, e.d, invalid_rays="skip"), ValueError, "invalid_rays: 'skip'"),
+    Row("bvh.intersect", "NaN origin with invalid_rays=\"miss\"", lambda e: e.bvh.intersect(
+        *_rays(e, o=(7, 0, np.nan)), invalid_rays="miss"), None),
+    Row("bvh.intersect", "origins of shape (N, 2) with invalid_rays=\"miss\"",
+        lambda e: e.bvh.intersect(e.o[:, :2], e.d, invalid_rays="miss"), ValueError, "shape (64, 2)"),
     Row("bvh.occluded", "NaN direction", lambda e: e.bvh.occluded(*_rays(e, d=(3, 1, np.nan))),
         ValueError, "ray 3"),
     Row("bvh.occluded", "tmin > tmax", lambda e: e.bvh.occluded(e.o, e.d, tmin=1.0, tmax=0.5),
         ValueError, "ray 0 has tmin 1.0 > tmax 0.5"),
     Row("bvh.occluded", "unknown option", lambda e: e.bvh.occluded(e.o, e.d, closest=True),
         TypeError, "closest"),
+    Row("bvh.occluded", "unknown invalid_rays", lambda e: e.bvh.occluded(
+        e.o, e.d, invalid_rays=True), ValueError, "invalid_rays: True"),
+    # bvh.closest_points
+    Row("bvh.closest_points", "NaN point", lambda e: e.bvh.closest_points(_rays(e, o=(2, 1, np.nan))[0]),
+        ValueError, "point 2 has a NaN"),
+    Row("bvh.closest_points", "points of shape (N, 2)", lambda e: e.bvh.closest_points(e.o[:, :2]),
+        ValueError, "expected (N, 3)"),
+    Row("bvh.closest_points", "negative max_distance",
+        lambda e: e.bvh.closest_points(e.o, max_distance=-1), ValueError, "max_distance: -1"),
+    Row("bvh.closest_points", "NaN max_distance",
+        lambda e: e.bvh.closest_points(e.o, max_distance=float("nan")), ValueError,
+        "max_distance: nan"),
+    Row("bvh.closest_points", "no points", lambda e: e.bvh.closest_points(np.zeros((0, 3))), None),
     # lbvh.render
     Row("lbvh.render", "unknown mode", lambda e: lbvh.render(e.bvh, e.camera, "xray"),
         ValueError, "'xray'"),
@@ -289,16 +329,16 @@ ROWS: list[Row] = [
     Row("lbvh.render", "bvh that is not a BVH", lambda e: lbvh.render(e.v, e.camera),
         ValueError, "bvh"),
     # lbvh.load_scene
-    _scene("absent.obj", "missing file", ValueError, "absent.obj: no such file"),
+    _scene("absent.obj", "missing file", MissingFileError, "absent.obj: no such file"),
     _scene("folder.obj", "a folder", ValueError, "folder.obj: a folder, not a file"),
     _scene("mesh.xyz", "unknown extension", ValueError, "unknown mesh format '.xyz'"),
-    _scene("empty.obj", "empty OBJ", ValueError, "empty.obj: the file holds no mesh"),
+    _scene("empty.obj", "empty OBJ", ValueError, "empty.obj: the file is empty"),
     _scene("truncated.obj", "OBJ truncated in the middle",
            ValueError, "truncated.obj: the file holds no triangles"),
     _scene("between_lines.obj", "OBJ cut between lines (last faces lost)", None),
     _scene("truncated.ply", "PLY truncated", ValueError, "truncated.ply: cannot read mesh"),
     _scene("truncated.glb", "GLB truncated", ValueError, "truncated.glb: cannot read mesh"),
-    _scene("empty.glb", "empty GLB", ValueError, "empty.glb: cannot read mesh"),
+    _scene("empty.glb", "empty GLB", ValueError, "empty.glb: the file is empty"),
     _scene("truncated.stl", "STL truncated",
            ValueError, "truncated.stl: not a valid"),
     _scene("garbage.stl", "STL of random bytes",
@@ -323,7 +363,7 @@ ROWS: list[Row] = [
            ValueError, "absent.obj: no such file"),
     _scene("flat.json", "JSON transform that flattens", ValueError, "transforms[0] scale"),
     # lbvh.load
-    _load("absent.npz", "missing file", ValueError, "absent.npz: not a saved lbvh BVH"),
+    _load("absent.npz", "missing file", MissingFileError, "absent.npz: no such file"),
     _load("other.npz", "an .npz of something else",
            ValueError, "other.npz: not a saved lbvh BVH (missing"),
     _load("truncated.npz", "truncated file",
@@ -366,6 +406,19 @@ ROWS: list[Row] = [
     Row("lbvh render", "output format .bmp", lambda e: [
         "render", e.path("good.obj"), "-o", e.path("out.bmp")], SystemExit,
         "unknown image format '.bmp'", command=True),
+    _render("--eye of two numbers", ["--eye", "1,2"], "--eye: '1,2' is not X,Y,Z"),
+    _render("--target with a NaN", ["--target", "0,nan,0"],
+            "--target: '0,nan,0' has a NaN or infinite number"),
+    _render("--fov 180", ["--fov", "180"], "--fov: 180.0 degrees"),
+    _render("--up parallel to the view", ["--eye", "0,0,5", "--target", "0,0,0", "--up", "0,0,1"],
+            "camera up: [0.0, 0.0, 1.0] is parallel"),
+    _render("--view unknown", ["--view", "nope"], "no view 'nope' (views: teapot"),
+    _render("--views missing file", ["--view", "teapot", "--views", "{tmp}/absent.json"],
+            "absent.json: no such views file"),
+    _render("--views without --view", ["--views", "{tmp}/bad.json"], "give --view NAME"),
+    Row("lbvh render", "misspelt shipped mesh", lambda e: [
+        "render", "teapt", "-o", e.path("out.png")], SystemExit,
+        "teapt: no such file, nor a mesh that ships with lbvh (shipped: teapot)", command=True),
     Row("lbvh check", "--builders lbvh31", lambda e: ["check", "--builders", "lbvh31"], SystemExit,
         "unknown builder 'lbvh31'", command=True),
     Row("lbvh check", "--cases nope", lambda e: ["check", "--cases", "nope"], SystemExit,
@@ -447,6 +500,9 @@ def test_accepted_inputs_do_what_the_table_says():
     env = make_env()
     empty = env.bvh.intersect(np.zeros((0, 3)), np.zeros((0, 3)))
     assert len(empty) == 0 and empty.overflow_count == 0
+    o, d = _rays(env, o=(7, 0, np.nan))
+    missed = env.bvh.intersect(o, d, invalid_rays="miss")
+    assert missed.invalid_count == 1 and missed.invalid[7] and missed.prim[7] == -1
     quad = lbvh.load_scene(env.path("quad.obj"))
     assert len(quad.faces) == 2
     cut = lbvh.load_scene(env.path("between_lines.obj"))

@@ -10,11 +10,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lbvh.cli import main, parse_size
+import lbvh.data
+from lbvh.cli import main, parse_size, parse_vector
 from lbvh.rendering.image import read_image
+from lbvh.version import __version__
 
 REPO = Path(__file__).resolve().parents[1]
 CORNELL = str(REPO / "scenes" / "cornell.json")
+#: A camera in front of the teapot, as a scene file or views file holds it.
+FRONT = {"position": [0.5, 2.0, 7.0], "target": [0.0, 1.2, 0.0], "up": [0, 1, 0], "fov": 35}
 
 
 def _run(capsys, *argv):
@@ -83,9 +87,34 @@ def test_render_frames_a_bare_mesh(capsys, tmp_path):
     (["render", CORNELL], "-o/--output"),
     (["info", "{tmp}/absent.obj"], "no such file"),
     (["paint", CORNELL], "invalid choice: 'paint'"),
+    # the camera options
+    (["render", "teapot", "-o", "{tmp}/x.png", "--eye", "1,2"], "--eye: '1,2' is not X,Y,Z"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--eye", "1,2,3,4"], "is not X,Y,Z"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--target", "a,b,c"], "--target: 'a,b,c' is not"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--eye", "1,nan,2"], "NaN or infinite"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--up", "0,inf,0"], "--up: '0,inf,0' has a NaN"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--up", "0,0,0"], "camera up: the zero vector"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--eye", "-1,2,3"], "write --eye=-1,2,3"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--eye", "0,1,0", "--target", "0,1,0"], "same point"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--fov", "nan"], "--fov: nan degrees"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--fov", "180"], "--fov: 180.0 degrees"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--fov", "wide"], "invalid float value: 'wide'"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--view", "nope"], "no view 'nope' (views: teapot"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--view", "a", "--views", "{tmp}/absent.json"],
+     "absent.json: no such views file"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--view", "a", "--views", "{tmp}/bad.json"],
+     "bad.json: not valid JSON"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--view", "a", "--views", "{tmp}/list.json"],
+     "a views file is a JSON object"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--view", "flat", "--views", "{tmp}/views.json"],
+     "view 'flat': camera fov: 0"),
+    (["render", "teapot", "-o", "{tmp}/x.png", "--views", "{tmp}/views.json"], "give --view NAME"),
+    (["render", "teapt", "-o", "{tmp}/x.png"], "teapt: no such file, nor a mesh that ships"),
 ])
 def test_errors_are_one_line_and_exit_2(capsys, tmp_path, argv, fragment):
     (tmp_path / "bad.json").write_text("{oops")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    (tmp_path / "views.json").write_text(json.dumps({"flat": {**FRONT, "fov": 0}}))
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     code, out, err = _run(capsys, *argv)
     _assert_one_line_error(code, err, fragment)
@@ -139,3 +168,128 @@ def test_the_installed_command_runs_in_a_subprocess(tmp_path):
                              "-o", str(tmp_path / "t.png"), "--size", "wide"],
                             capture_output=True, text=True, timeout=120, env=env)
     assert failed.returncode == 2 and failed.stderr.count("\n") == 1 and "Traceback" not in failed.stderr
+
+
+# -- the version, the shipped mesh, the camera options -------------------------------------
+
+def test_version(capsys):
+    code, out, err = _run(capsys, "--version")
+    assert code == 0 and out.strip() == f"lbvh {__version__}" and not err
+
+
+def _camera_line(out: str) -> str:
+    lines = [line for line in out.splitlines() if line.startswith("camera:")]
+    assert len(lines) == 1, out
+    return lines[0]
+
+
+def _depth(capsys, tmp_path, scene, *options, name="d.exr"):
+    """Render ``scene``'s depth at 24x18; the image and the camera: line."""
+    code, out, err = _run(capsys, "render", str(scene), "-o", str(tmp_path / name), "--mode",
+                          "depth", "--size", "24x18", *options)
+    assert code == 0, err
+    return read_image(tmp_path / name)[:, :, 0], _camera_line(out)
+
+
+def _scene_file(tmp_path, camera) -> Path:
+    """A scene description of the shipped teapot with ``camera``."""
+    path = tmp_path / "teapot_scene.json"
+    path.write_text(json.dumps({"mesh": str(lbvh.data.path("teapot")), "camera": camera}))
+    return path
+
+
+def test_render_and_info_take_a_shipped_mesh_by_name(capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)          # no file called "teapot" here
+    code, out, err = _run(capsys, "info", "teapot")
+    assert code == 0, err
+    assert "triangles:   6320" in out.replace(",", "") and "shipped with lbvh" in out
+    depth, line = _depth(capsys, tmp_path, "teapot")
+    assert "framed automatically" in line
+    hit = np.isfinite(depth)
+    assert hit.mean() > 0.1 and not hit[0].any() and not hit[:, 0].any()
+
+
+def test_a_file_of_the_shipped_name_wins(capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "teapot").write_text("v 0 0 0\n")   # a file named teapot, not a mesh format
+    code, out, err = _run(capsys, "info", "teapot")
+    _assert_one_line_error(code, err, "teapot: unknown mesh format")
+
+
+def test_eye_and_target_give_the_camera_a_scene_file_would(capsys, tmp_path):
+    from_file, line = _depth(capsys, tmp_path, _scene_file(tmp_path, FRONT), name="a.exr")
+    assert "from the scene file:" in line
+    options = ["--eye=0.5,2,7", "--target", "0 1.2 0", "--up", "0,1,0", "--fov", "35"]
+    from_options, line = _depth(capsys, tmp_path, "teapot", *options, name="b.exr")
+    assert line.startswith("camera:    from --eye/--target/--up/--fov:")
+    assert "--eye=0.5,2,7 --target=0,1.2,0 --up=0,1,0 --fov=35 --size=24x18" in line
+    assert np.isfinite(from_file).mean() > 0.1
+    assert np.array_equal(from_file, from_options)
+
+
+def test_eye_and_target_alone_default_up_and_fov(capsys, tmp_path):
+    _, line = _depth(capsys, tmp_path, "teapot", "--eye=0.5,2,7", "--target=0,1.2,0")
+    assert line.endswith("from --eye/--target: --eye=0.5,2,7 --target=0,1.2,0 --up=0,1,0 "
+                         "--fov=45 --size=24x18")
+
+
+def test_view_from_the_shipped_views_file(capsys, tmp_path):
+    views = json.loads(lbvh.data.views_path().read_text())
+    by_view, line = _depth(capsys, tmp_path, "teapot", "--view", "teapot", name="a.exr")
+    assert "--view teapot from lbvh/data/cameras.json (shipped with lbvh):" in line
+    by_file, _ = _depth(capsys, tmp_path, _scene_file(tmp_path, views["teapot"]), name="b.exr")
+    assert np.isfinite(by_view).mean() > 0.1 and np.array_equal(by_view, by_file)
+
+
+def test_view_from_a_views_file_with_an_option_on_top(capsys, tmp_path):
+    views = tmp_path / "my_views.json"
+    views.write_text(json.dumps({"_comment": "not a view", "front": FRONT,
+                                 "other": {"position": [9, 9, 9], "target": [0, 0, 0]}}))
+    by_view, line = _depth(capsys, tmp_path, "teapot", "--view", "front", "--views", str(views),
+                           "--fov", "50", name="a.exr")
+    assert f"--view front from {views}, with --fov:" in line and "--fov=50 " in line
+    by_file, _ = _depth(capsys, tmp_path, _scene_file(tmp_path, {**FRONT, "fov": 50}), name="b.exr")
+    assert np.isfinite(by_view).mean() > 0.1 and np.array_equal(by_view, by_file)
+
+
+def test_fov_alone_frames_the_mesh_again(capsys, tmp_path):
+    wide, line = _depth(capsys, tmp_path, "teapot", name="a.exr")
+    narrow, line = _depth(capsys, tmp_path, "teapot", "--fov", "15", name="b.exr")
+    assert "framed automatically, with --fov:" in line and "--fov=15 " in line
+    for depth in (wide, narrow):   # the whole teapot in view, away from the border
+        hit = np.isfinite(depth)
+        assert hit.mean() > 0.1
+        assert not (hit[0].any() or hit[-1].any() or hit[:, 0].any() or hit[:, -1].any())
+    assert np.nanmin(narrow) > 2 * np.nanmin(wide)   # from further away
+
+
+def test_eye_alone_keeps_the_target_of_the_camera_it_changes(capsys, tmp_path):
+    scene = _scene_file(tmp_path, FRONT)
+    _, line = _depth(capsys, tmp_path, scene, "--eye=-7,2,0.5")
+    assert "from the scene file, with --eye: --eye=-7,2,0.5 --target=0,1.2,0 --up=0,1,0" in line
+
+
+def test_up_turns_the_image(capsys, tmp_path):
+    camera = {**FRONT, "position": [0.0, 1.2, 7.0]}   # straight down -z
+    upright, _ = _depth(capsys, tmp_path, _scene_file(tmp_path, camera), "--size", "16x16",
+                        name="a.exr")
+    turned, line = _depth(capsys, tmp_path, _scene_file(tmp_path, camera), "--size", "16x16",
+                          "--up", "1,0,0", name="b.exr")
+    assert "from the scene file, with --up:" in line and "--up=1,0,0" in line
+    # up along +x (right along -y): the upright image turned a quarter counter-clockwise
+    expected = np.rot90(upright, k=1)
+    same = np.isfinite(expected) == np.isfinite(turned)
+    assert same.mean() > 0.97 and not np.array_equal(np.isfinite(upright), np.isfinite(turned))
+    both = np.isfinite(expected) & np.isfinite(turned)
+    np.testing.assert_allclose(turned[both], expected[both], rtol=1e-4)
+
+
+def test_parse_vector():
+    assert parse_vector("--eye", "1,2,3") == (1.0, 2.0, 3.0)
+    assert parse_vector("--eye", " -1.5 2e1, 0 ") == (-1.5, 20.0, 0.0)
+    for bad in ("", "1,2", "1,2,3,4", "1,,x", "1;2;3"):
+        with pytest.raises(ValueError, match="--eye: .* is not X,Y,Z"):
+            parse_vector("--eye", bad)
+    for bad in ("nan,0,0", "0,inf,0", "0,0,-inf"):
+        with pytest.raises(ValueError, match="NaN or infinite"):
+            parse_vector("--eye", bad)

@@ -15,8 +15,10 @@ PACKAGE = Path(lbvh.__file__).resolve().parent
 
 #: (module prefix, layer): a module may import only modules of its layer or lower.
 LAYERS = [
-    ("lbvh.version", 0), ("lbvh.layout", 0), ("lbvh.mesh", 0),
-    ("lbvh.report", 1),
+    ("lbvh.version", 0), ("lbvh.layout", 0), ("lbvh.mesh", 0), ("lbvh.progress", 0),
+    ("lbvh.report", 1), ("lbvh.data", 1),   # lbvh.data: the shipped files (numpy only)
+    # readers of the caller's files and cameras: numpy (and trimesh) only
+    ("lbvh.rendering.camera", 1), ("lbvh.rendering.scene", 1),
     ("lbvh.device", 2),
     ("lbvh.tree", 3),
     ("lbvh.builders", 4),

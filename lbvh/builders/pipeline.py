@@ -21,7 +21,7 @@ from ..report import PHASES, BuildReport
 from ..tree import Mesh, Tree
 from .bounds import triangle_bounds
 from .emit import emit_hierarchy
-from .morton import choose_key_bits, enqueue_count_duplicates, morton_codes
+from .morton import choose_key_bits, code_bits, enqueue_count_duplicates, morton_codes
 from .options import LBVHOptions
 from .refit import refit_from_boxes
 from .restructure import restructure
@@ -116,7 +116,8 @@ def build_tree(ctx: dev.Context, mesh: Mesh, options: LBVHOptions = LBVHOptions(
         mem.close()
 
     phase_seconds = {phase: dev.event_seconds(evs) for phase, evs in events.items()}
-    report = BuildReport(device=ctx.name, builder=tree.builder, num_triangles=n, key_bits=bits,
+    report = BuildReport(device=ctx.name, builder=tree.builder, num_triangles=n,
+                         key_bits=code_bits(bits),
                          key_choice=choice, duplicate_codes=duplicates,
                          phase_seconds=phase_seconds, device_seconds=sum(phase_seconds.values()),
                          wall_seconds=wall, sort_passes=passes, peak_device_bytes=mem.peak,

@@ -36,6 +36,7 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -44,9 +45,13 @@ from ..layout import NODE_DTYPE, parents_of
 from ..tree import Mesh, Tree, upload_tree
 from .options import SAHOptions
 from .cost import C_NODE, C_TRI, MAX_LEAF_SIZE, box_area
+from ..progress import bar as progress_bar
 from ..report import BuildReport
 from .bounds import triangle_boxes_numpy
 
+
+#: Meshes from this size on show a progress bar by default (a few seconds of build).
+PROGRESS_TRIANGLES = 200_000
 
 _LOW32 = np.int64(0xFFFFFFFF)
 _LITTLE_ENDIAN = sys.byteorder == "little"
@@ -192,11 +197,14 @@ def _stable_partition(order: np.ndarray, sweep: _Sweep, split_seg: np.ndarray,
 
 
 def sah_tree(lo: np.ndarray, hi: np.ndarray, c_node: float = C_NODE, c_tri: float = C_TRI,
-             max_leaf_size: int = MAX_LEAF_SIZE) -> tuple[np.ndarray, np.ndarray]:
+             max_leaf_size: int = MAX_LEAF_SIZE, progress: Any = None
+             ) -> tuple[np.ndarray, np.ndarray]:
     """Build the SAH tree over primitive boxes.
 
     Args:
         lo, hi: ``float32 (F, 3)`` primitive boxes, ``F >= 1``.
+        progress: a bar (:func:`lbvh.progress.bar`) advanced by the primitives
+            placed in leaves, level by level; or None.
 
     Returns:
         ``nodes`` (``NODE_DTYPE``, root 0, numbered level by level) and
@@ -216,6 +224,8 @@ def sah_tree(lo: np.ndarray, hi: np.ndarray, c_node: float = C_NODE, c_tri: floa
         if single.any():  # one primitive: a leaf over its own box
             p = order[0][start[single]]
             _write_leaves(nodes, ids[single], lo[p], hi[p], start[single], count[single])
+            if progress is not None:
+                progress.update(int(single.sum()))
         start, count, ids = start[~single], count[~single], ids[~single]
         if not len(start):
             break
@@ -224,6 +234,8 @@ def sah_tree(lo: np.ndarray, hi: np.ndarray, c_node: float = C_NODE, c_tri: floa
         leaf_cost = c_tri * count * sweep.area
         leaf = (count <= max_leaf_size) & (split_cost >= leaf_cost)
         _write_leaves(nodes, ids[leaf], sweep.box_lo[leaf], sweep.box_hi[leaf], start[leaf], count[leaf])
+        if progress is not None:
+            progress.update(int(count[leaf].sum()))
         split = ~leaf
         num_split = int(split.sum())
         left_ids = next_id + 2 * np.arange(num_split)
@@ -245,17 +257,23 @@ def _write_leaves(nodes: np.ndarray, ids: np.ndarray, lo: np.ndarray, hi: np.nda
     nodes["a"][ids], nodes["b"][ids] = first, -count
 
 
-def build_tree(ctx: dev.Context, mesh: Mesh, options: SAHOptions = SAHOptions()) -> Tree:
+def build_tree(ctx: dev.Context, mesh: Mesh, options: SAHOptions = SAHOptions(),
+               progress: bool | None = None) -> Tree:
     """Build the SAH reference tree on the host and upload it (``lbvh.build(builder="sah")``).
 
     ``mesh`` holds checked host arrays (``lbvh.build`` checks them). The
     report's ``wall_seconds`` is the host build time, ``upload_seconds`` the
-    upload of the tree. The caller holds ``ctx.lock``.
+    upload of the tree. ``progress``: a bar on stderr (:mod:`lbvh.progress`);
+    ``None`` shows it for meshes of :data:`PROGRESS_TRIANGLES` or more when
+    stderr is a terminal. The caller holds ``ctx.lock``.
     """
     t0 = time.perf_counter()
     lo, hi = triangle_boxes_numpy(mesh.vertices, mesh.faces)
-    nodes, prim_order = sah_tree(lo, hi, float(options.c_node), float(options.c_tri),
-                                 int(options.max_leaf_size))
+    if progress is None and mesh.num_prims < PROGRESS_TRIANGLES:
+        progress = False
+    with progress_bar(mesh.num_prims, "SAH build", "tri", progress) as placed:
+        nodes, prim_order = sah_tree(lo, hi, float(options.c_node), float(options.c_tri),
+                                     int(options.max_leaf_size), placed)
     wall = time.perf_counter() - t0
     report = BuildReport(device=ctx.name, builder="sah", num_triangles=mesh.num_prims,
                          wall_seconds=wall, input_bytes=mesh.vertices.nbytes + mesh.faces.nbytes)

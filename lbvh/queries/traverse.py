@@ -1,15 +1,25 @@
 """Ray queries: closest hit and occlusion on the device (kernels/traverse.cl).
 
 The host API is :func:`intersect` and :func:`occluded` (also reachable as
-``bvh.intersect`` and ``bvh.occluded``); :func:`trace_buffers` is the
-device-level entry for callers that keep their rays on the device.
+``bvh.intersect`` and ``bvh.occluded``), their non-blocking forms
+:func:`intersect_async` and :func:`occluded_async` (a
+``concurrent.futures.Future``); :func:`trace_buffers` is the device-level entry
+for callers that keep their rays in their own buffers.
 
 Rays are checked and converted by :mod:`lbvh.queries.rays` (the conventions
 are there): bad rays are refused before anything runs on the device, with a
-``ValueError`` naming the first bad ray. The kernel itself terminates on any
-input (its loop is bounded by the stack and by the node count); a NaN ray that
-reached it through :func:`trace_buffers` is not traced: a miss with
+``ValueError`` naming the first bad ray, or with ``invalid_rays="miss"`` not
+traced and reported as misses (``Hits.invalid``). Rays in
+``pyopencl.array.Array`` objects on the BVH's context are checked on the
+device, traced in place and answered by a :class:`DeviceHitArrays` whose
+fields stay on the device. The kernel itself terminates on any input (its
+loop is bounded by the stack and by the node count); a NaN ray that reached
+it through :func:`trace_buffers` is not traced: a miss with
 :data:`FLAG_NAN_RAY` set.
+
+Results (:class:`Hits`): ``t`` (``inf`` on a miss), ``prim`` (``-1``), ``u``, ``v``,
+``mask`` (hit or not), ``locations(origins, directions)`` and ``normals``
+(NaN rows for misses), overflow and invalid flags, optional counters.
 
 Stack
     The stack has room for the most entries an ordered traversal of the tree
@@ -35,14 +45,19 @@ Wide records
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, Literal
 
 import numpy as np
 import pyopencl as cl
+import pyopencl.array as cl_array
 
 from .. import device as dev
-from .rays import DeviceRays, Rays, check_rays, upload_rays
+from .rays import (DEVICE_KERNEL_FILE, DeviceRays, InvalidRays, Rays, check_invalid_rays, check_rays,
+                   device_array_rays, device_invalid, host_array, is_device_array,
+                   mark_invalid, read_device_rays, upload_rays)
 from .ray_order import ray_order, worth_ordering
 from ..tree import Mesh, Tree
 from .target import QueryTarget
@@ -50,8 +65,9 @@ from .target import QueryTarget
 KERNEL_FILE = "traverse.cl"
 
 #: The query API (the rays' checks and upload come from :mod:`lbvh.queries.rays`).
-__all__ = ["Hits", "DeviceHits", "Rays", "DeviceRays", "check_rays", "upload_rays", "intersect",
-           "occluded", "trace_buffers", "read_hits", "stack_need", "stack_size_for",
+__all__ = ["Hits", "DeviceHitArrays", "DeviceHits", "Rays", "DeviceRays", "check_rays",
+           "upload_rays", "intersect", "occluded", "intersect_async", "occluded_async",
+           "geometric_normals", "trace_buffers", "read_hits", "stack_need", "stack_size_for",
            "order_faces", "FLAG_OVERFLOW", "FLAG_VISIT_LIMIT", "FLAG_NAN_RAY", "STACK_BUCKETS"]
 
 #: Bits of the per-ray flag word written by the kernel.
@@ -63,6 +79,10 @@ FLAG_NAN_RAY = 4       # NaN in the ray (only through trace_buffers): not traced
 STACK_BUCKETS = (32, 64, 96, 128, 192, 256, 384, 512, 768)
 
 TRIANGLE_TESTS = {"watertight": 0, "moller": 1}
+TriangleTest = Literal["watertight", "moller"]
+
+#: Rays per kernel launch of the host API unless ``batch_size`` says otherwise.
+DEFAULT_BATCH = 1 << 20
 
 # Work-group size. On PoCL a work-group's work-items run as a loop on one core;
 # groups of 1, 16, 64 and 256 rays, and work-items looping over 64 or 512 rays,
@@ -70,6 +90,21 @@ TRIANGLE_TESTS = {"watertight": 0, "moller": 1}
 _WORK_GROUP = 64
 
 _UNIT_ROUNDOFF = 2.0 ** -24
+
+
+def geometric_normals(vertices: np.ndarray, faces: np.ndarray, prim: np.ndarray) -> np.ndarray:
+    """``float32 (N, 3)``: the unit geometric normal of triangle ``prim[i]``,
+    ``cross(p1 - p0, p2 - p0)`` normalised (``p0, p1, p2 = vertices[faces[prim]]``: the
+    winding of the faces), computed in float64; NaN rows where ``prim`` is ``-1``."""
+    prim = np.asarray(prim)
+    out = np.full((len(prim), 3), np.nan, np.float32)
+    hit = np.flatnonzero(prim >= 0)
+    if len(hit):
+        tri = np.asarray(vertices)[np.asarray(faces)[prim[hit]]].astype(np.float64)
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[hit] = n / np.linalg.norm(n, axis=1, keepdims=True)
+    return out
 
 
 @dataclass
@@ -87,11 +122,21 @@ class Hits:
         nodes_visited: ``int32 (N,)`` with ``counters=True`` (else ``None``): the root plus
             every node the traversal descended into or popped; a node is a wide record
             (up to 8 children, :mod:`lbvh.queries.wide`) or a leaf, or a binary node for trees
-            traversed through their own nodes.
+            traversed through their own nodes. 0 for an invalid ray (not traced).
         tris_tested: ``int32 (N,)`` with ``counters=True`` (else ``None``).
+        invalid: ``bool (N,)`` the ray was bad and not traced (``invalid_rays="miss"``;
+            all ``False`` otherwise): it reads as a miss.
+        invalid_count: number of ``True`` in ``invalid``.
+        mask: ``bool (N,)`` whether each ray hit something (``prim >= 0``; also ``hit``).
+        normals: ``float32 (N, 3)`` unit geometric normals of the hit triangles (see
+            :func:`geometric_normals`), NaN rows for misses; computed when read.
+        geometry: ``(vertices, faces)`` the rays were traced against, what ``normals``
+            reads: the mesh's own read-only arrays (no copy; a later refit does not
+            change them); ``None`` for results not made by a query.
 
-    From :func:`occluded` with ``return_hits=True`` the hit is *a* hit in
-    ``[tmin, tmax]``, not necessarily the closest.
+    :meth:`locations` gives the hit points. From :func:`occluded` with
+    ``return_hits=True`` the hit is *a* hit in ``[tmin, tmax]``, not necessarily
+    the closest.
     """
     t: np.ndarray
     prim: np.ndarray
@@ -101,14 +146,108 @@ class Hits:
     overflow_count: int
     nodes_visited: np.ndarray | None = None
     tris_tested: np.ndarray | None = None
+    invalid: np.ndarray | None = None
+    invalid_count: int = 0
+    geometry: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False,
+                                                           compare=False)
+
+    def __post_init__(self) -> None:
+        if self.invalid is None:
+            self.invalid = np.zeros(len(self.t), bool)
 
     @property
     def hit(self) -> np.ndarray:
         """``bool (N,)``: whether each ray hit something."""
         return self.prim >= 0
 
+    @property
+    def mask(self) -> np.ndarray:
+        """``bool (N,)``: whether each ray hit something (the same as :attr:`hit`)."""
+        return self.prim >= 0
+
+    def locations(self, origins: Any, directions: Any) -> np.ndarray:
+        """The hit points ``origin + t * direction``, ``(N, 3)``; NaN rows for misses.
+
+        ``origins`` and ``directions`` are the rays the query traced (any host array
+        :func:`lbvh.queries.rays.host_array` reads). The result is float64 when
+        either is float64, else float32 (as the rays were traced).
+        """
+        o = np.asarray(host_array("origins", origins))
+        d = np.asarray(host_array("directions", directions))
+        for name, a in (("origins", o), ("directions", d)):
+            if a.shape != (len(self), 3):
+                raise ValueError(f"{name}: shape {a.shape}, expected ({len(self)}, 3): the rays "
+                                 "of this result")
+        dtype = np.float64 if np.float64 in (o.dtype, d.dtype) else np.float32
+        out = np.array(d, dtype=dtype)
+        with np.errstate(invalid="ignore", over="ignore"):
+            out *= self.t[:, None]
+            out += o
+        out[~self.hit] = np.nan
+        return out
+
+    @property
+    def normals(self) -> np.ndarray:
+        """``float32 (N, 3)``: unit geometric normals of the hit triangles, NaN rows for
+        misses (:func:`geometric_normals`)."""
+        if self.geometry is None:
+            raise ValueError("normals: this Hits holds no mesh (it was not made by a query); "
+                             "use lbvh.queries.traverse.geometric_normals(vertices, faces, hits.prim)")
+        return geometric_normals(*self.geometry, self.prim)
+
     def __len__(self) -> int:
         return len(self.t)
+
+
+@dataclass
+class DeviceHitArrays:
+    """Results of a query on ``pyopencl.array.Array`` rays: the fields of :class:`Hits`
+    as pyopencl arrays on the BVH's queue, left on the device.
+
+    ``t``, ``u``, ``v`` (float32), ``prim`` (int32), ``overflow``, ``invalid``, ``mask``
+    (``bool``, one byte each: pyopencl's arithmetic does not take ``bool``, use
+    ``.view(np.uint8)``), ``nodes_visited``, ``tris_tested`` (int32, or ``None``): the
+    kernel's answers in place, each array carrying the event that writes it (``get()``
+    waits for it). ``invalid_count`` is known when the call returns;
+    :attr:`overflow_count` is read from the device when asked for (4 bytes).
+    :meth:`get` copies everything to a :class:`Hits`.
+    """
+    t: cl_array.Array
+    prim: cl_array.Array
+    u: cl_array.Array
+    v: cl_array.Array
+    overflow: cl_array.Array
+    invalid: cl_array.Array
+    invalid_count: int
+    mask: cl_array.Array
+    nodes_visited: cl_array.Array | None
+    tris_tested: cl_array.Array | None
+    overflow_counter: cl_array.Array = field(repr=False)
+    geometry: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False,
+                                                           compare=False)
+
+    @property
+    def hit(self) -> cl_array.Array:
+        """The same as :attr:`mask`."""
+        return self.mask
+
+    @property
+    def overflow_count(self) -> int:
+        """How many rays overflowed the stack (waits for the query)."""
+        return int(self.overflow_counter.get()[0])
+
+    def get(self) -> Hits:
+        """Everything copied to the host, as the host API returns it (waits)."""
+        def host(a: cl_array.Array | None) -> np.ndarray | None:
+            return None if a is None else a.get()
+        return Hits(t=self.t.get(), prim=self.prim.get(), u=self.u.get(), v=self.v.get(),
+                    overflow=self.overflow.get(), overflow_count=self.overflow_count,
+                    nodes_visited=host(self.nodes_visited), tris_tested=host(self.tris_tested),
+                    invalid=self.invalid.get(), invalid_count=self.invalid_count,
+                    geometry=self.geometry)
+
+    def __len__(self) -> int:
+        return self.t.shape[0]
 
 
 @dataclass
@@ -255,12 +394,49 @@ def read_hits(ctx: dev.Context, out: DeviceHits) -> np.ndarray:
 
 # -- host API ---------------------------------------------------------------------
 
-def _trace(target: QueryTarget, origins: Any, directions: Any, tmin: Any, tmax: Any, any_hit: bool,
-           triangle_test: str, counters: bool, batch_size: int,
-           stack_size: int | None) -> Hits:
-    if not isinstance(batch_size, (int, np.integer)) or batch_size < 1:
+def _check_batch(batch_size: Any) -> int:
+    if not isinstance(batch_size, (int, np.integer)) or isinstance(batch_size, bool) \
+            or batch_size < 1:
         raise ValueError(f"batch_size: {batch_size!r}; expected a positive integer")
-    rays = check_rays(origins, directions, tmin, tmax)
+    return int(batch_size)
+
+
+def _trace(target: QueryTarget, origins: Any, directions: Any, tmin: Any, tmax: Any, any_hit: bool,
+           triangle_test: str, counters: bool, batch_size: int, stack_size: int | None,
+           invalid_rays: str) -> Hits | DeviceHitArrays:
+    """Check the options and the rays, then trace them: host arrays in batches, pyopencl
+    arrays in place."""
+    batch_size = _check_batch(batch_size)
+    check_invalid_rays(invalid_rays)
+    if is_device_array(origins) or is_device_array(directions):
+        return _trace_arrays(target, origins, directions, tmin, tmax, any_hit, triangle_test,
+                             counters, stack_size, invalid_rays)
+    rays = check_rays(origins, directions, tmin, tmax, invalid_rays=invalid_rays)
+    geometry = (target.mesh.vertices, target.mesh.faces)
+    if rays.invalid is None:
+        hits = _trace_rays(target, rays, any_hit, triangle_test, counters, batch_size, stack_size)
+        hits.geometry = geometry
+        return hits
+    # invalid_rays="miss" and some rays are bad: the good ones are traced alone
+    good = np.flatnonzero(~rays.invalid)
+    part = _trace_rays(target, rays.take(good), any_hit, triangle_test, counters, batch_size,
+                       stack_size)
+    n = len(rays)
+    hits = Hits(t=np.full(n, np.inf, np.float32), prim=np.full(n, -1, np.int32),
+                u=np.zeros(n, np.float32), v=np.zeros(n, np.float32), overflow=np.zeros(n, bool),
+                overflow_count=part.overflow_count,
+                nodes_visited=None if part.nodes_visited is None else np.zeros(n, np.int32),
+                tris_tested=None if part.tris_tested is None else np.zeros(n, np.int32),
+                invalid=rays.invalid, invalid_count=n - len(good), geometry=geometry)
+    for name in ("t", "prim", "u", "v", "overflow", "nodes_visited", "tris_tested"):
+        if getattr(part, name) is not None:
+            getattr(hits, name)[good] = getattr(part, name)
+    return hits
+
+
+def _trace_rays(target: QueryTarget, rays: Rays, any_hit: bool, triangle_test: str,
+                counters: bool, batch_size: int, stack_size: int | None) -> Hits:
+    """Trace checked rays, all good, in batches of ``batch_size``."""
     n = len(rays)
     planes = np.empty((4, n), np.float32)
     flag = np.zeros(n, np.int32)
@@ -317,44 +493,210 @@ def _trace(target: QueryTarget, origins: Any, directions: Any, tmin: Any, tmax: 
                 tris_tested=None if count is None else count[:, 1].copy())
 
 
-@dev.serialised
-def intersect(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
-              triangle_test: str = "watertight", counters: bool = False,
-              batch_size: int = 1 << 20, stack_size: int | None = None) -> Hits:
-    """Closest hit of each ray in ``[tmin, tmax]``.
+# -- rays in pyopencl arrays ----------------------------------------------------
 
-    Args:
-        target: an :class:`lbvh.BVH` (any builder; the kernel reads only docs/layout.md).
-        origins, directions: ``(N, 3)`` float arrays (converted to float32).
+def _trace_arrays(target: QueryTarget, origins: Any, directions: Any, tmin: Any, tmax: Any,
+                  any_hit: bool, triangle_test: str, counters: bool, stack_size: int | None,
+                  invalid_rays: str) -> DeviceHitArrays:
+    """Trace rays held in pyopencl arrays without a host round trip of the rays or the
+    results: the values are checked on the device (:func:`lbvh.queries.rays.device_invalid`:
+    a 4-byte read of how many are bad), bad ones raise (their first named, read back)
+    or are reported as misses (their ``tmin`` set to NaN: the kernel does not trace them)."""
+    ctx, q = target.ctx, target.ctx.queue
+    given = device_array_rays(ctx, origins, directions, tmin, tmax)
+    rays, n = given.rays, given.rays.count
+    order = None
+    bad, bad_count = device_invalid(ctx, rays, given.wait_for)
+    if bad_count and invalid_rays == "raise":
+        host = read_device_rays(ctx, rays)   # named as the host checks name it
+        check_rays(host.origins, host.directions, host.tmin, host.tmax)
+        raise AssertionError("the device found a bad ray that check_rays accepts")
+    wait_for = list(given.wait_for) + list(bad.events)
+    if bad_count:
+        rays = mark_invalid(ctx, rays, bad)
+    elif worth_ordering(n, target.tree.num_nodes):
+        order, events = ray_order(ctx, rays.origins, rays.directions, n,
+                                  *target.tree.root_box())
+        wait_for += events
+    if n:
+        out = trace_buffers(target, rays, any_hit=any_hit, triangle_test=triangle_test,
+                            counters=counters, stack_size=stack_size, wait_for=wait_for,
+                            order=order)
+    else:   # nothing to launch; the options are checked all the same
+        kernel_defines(ctx, any_hit, triangle_test, counters, stack_size or 1)
+        out = DeviceHits(0, ctx.memory.alloc(16), ctx.memory.alloc(4),
+                         ctx.memory.alloc(8) if counters else None, cl.enqueue_marker(q))
+    done = [out.event]
+
+    def plane(k: int, dtype: type) -> cl_array.Array:
+        return cl_array.Array(q, (n,), dtype, data=out.hits, offset=4 * k * n, events=done)
+
+    def new(dtype: type, size: int = n) -> cl_array.Array:
+        return cl_array.Array(q, (size,), dtype,
+                              data=ctx.memory.alloc(np.dtype(dtype).itemsize * size))
+
+    prim = plane(3, np.int32)
+    overflow, mask, counter = new(np.bool_), new(np.bool_), new(np.int32, 1)
+    nodes = tris = None
+    if counters:
+        nodes, tris = new(np.int32), new(np.int32)
+    fill = cl.enqueue_fill_buffer(q, counter.base_data, np.int32(0), 0, 4)
+    if n:   # kernels/device_rays.cl hits_from_flags; unused counter arguments get a placeholder
+        post = dev.run(ctx, DEVICE_KERNEL_FILE, "hits_from_flags", dev.Launch(
+            n, 1, -(-n // 64) * 64, 64), out.flags, out.hits,
+            bad.base_data, n, overflow.base_data, mask.base_data, counter.base_data,
+            out.counters if counters else out.flags, nodes.base_data if counters else out.flags,
+            tris.base_data if counters else out.flags, defines={"COUNTERS": int(counters)},
+            wait_for=done + [fill])
+        done = [post]
+    else:
+        done = [fill]
+    for arr in (overflow, mask, counter) + ((nodes, tris) if counters else ()):
+        arr.add_event(done[0])
+    for source in given.sources:   # pyopencl writes to the inputs wait for the query
+        source.add_event(out.event)
+    # The query's own buffers (converted rays, intervals, the order) go with their last
+    # reference: the runtime keeps a buffer until the commands reading it are done.
+    return DeviceHitArrays(t=plane(0, np.float32), prim=prim, u=plane(1, np.float32),
+                           v=plane(2, np.float32), overflow=overflow, invalid=bad,
+                           invalid_count=bad_count, mask=mask, nodes_visited=nodes,
+                           tris_tested=tris, overflow_counter=counter,
+                           geometry=(target.mesh.vertices, target.mesh.faces))
+
+
+# -- the public calls ---------------------------------------------------------------
+
+_ARGS_DOC = """
+        origins, directions: ``(N, 3)`` arrays, float32 (float64 and integers are
+            converted): numpy arrays or any host array (``__array_interface__``,
+            the buffer protocol, a CPU ``__dlpack__``, ``__array__``; read without a
+            copy where they are float32 and C-contiguous), or ``pyopencl.array.Array``
+            on the BVH's context (``bvh.ctx.ctx``): then the rays are read and the
+            results left on the device (:class:`DeviceHitArrays`).
         tmin, tmax: scalars or ``(N,)`` arrays, ``0 <= tmin <= tmax``; ``tmax`` may be ``inf``.
         triangle_test: ``"watertight"`` (Woop 2013, default) or ``"moller"`` (Moller-Trumbore).
         counters: also return nodes visited and triangles tested per ray.
-        batch_size: rays per kernel launch; device memory is about 60 bytes per ray of a batch.
+        batch_size: rays per kernel launch of host arrays; device memory is about 60
+            bytes per ray of a batch (pyopencl rays are traced in one launch).
         stack_size: override the stack size chosen from the tree's depth (for tests).
+        invalid_rays: ``"raise"`` (default): a bad ray (NaN, infinite or beyond-float32
+            components, a zero-length direction, a NaN, negative or infinite ``tmin``, a
+            NaN ``tmax``, ``tmin > tmax``) raises ``ValueError`` naming the first one.
+            ``"miss"``: bad rays are not traced and come back as misses (``t = inf``,
+            ``prim = -1``, ``u = v = 0``, counters 0) with ``invalid`` set and counted in
+            ``invalid_count``; the other rays' answers are those they get alone.
+            Shapes and dtypes raise either way."""
 
-    Returns:
-        :class:`Hits`. Among triangles hit at exactly the same ``t`` the one
-        found first wins.
-
+_RAISES_DOC = """
     Raises:
-        ValueError: a bad ray (named) or a bad option.
-    """
-    return _trace(target, origins, directions, tmin, tmax, False, triangle_test, counters,
-                  batch_size, stack_size)
+        ValueError: a bad ray (named; unless ``invalid_rays="miss"``), a bad shape,
+        dtype or option, pyopencl arrays on another context.
+"""
+
+_INTERSECT_SUMMARY = "Closest hit of each ray in ``[tmin, tmax]``."
+_INTERSECT_RETURNS = """
+    Returns:
+        :class:`Hits` (:class:`DeviceHitArrays` for pyopencl rays). Among triangles hit
+        at exactly the same ``t`` the one found first wins.
+"""
+_OCCLUDED_SUMMARY = ("Whether each ray hits anything in ``[tmin, tmax]`` (any-hit traversal, "
+                     "stops at the first).")
+_OCCLUDED_ARGS = """
+        return_hits: return the full :class:`Hits` instead of the answer alone."""
+_OCCLUDED_RETURNS = """
+    Returns:
+        ``bool (N,)`` (a ``bool`` pyopencl array for pyopencl rays; an invalid ray is
+        ``False`` with ``invalid_rays="miss"``); with ``return_hits=True`` the
+        :class:`Hits` (:class:`DeviceHitArrays`): ``hits.hit`` is the answer,
+        ``hits.overflow`` / ``hits.overflow_count`` report stack overflows,
+        ``t, prim, u, v`` describe the hit that was found, not necessarily the closest.
+"""
+_TARGET_DOC = """
+        target: an :class:`lbvh.BVH` (any builder; the kernel reads only docs/layout.md)."""
+
+
+def query_doc(which: str, *, target: bool) -> str:
+    """The docstring of the ``which`` query (``"intersect"`` or ``"occluded"``), with the
+    ``target`` argument (this module's functions) or without (:class:`lbvh.BVH`'s methods)."""
+    summary, extra, returns = {
+        "intersect": (_INTERSECT_SUMMARY, "", _INTERSECT_RETURNS),
+        "occluded": (_OCCLUDED_SUMMARY, _OCCLUDED_ARGS, _OCCLUDED_RETURNS)}[which]
+    return (f"{summary}\n\n    Args:{_TARGET_DOC if target else ''}{_ARGS_DOC}{extra}\n"
+            f"{returns}{_RAISES_DOC}")
+
+
+def async_doc(which: str) -> str:
+    """The docstring of the non-blocking form of the ``which`` query."""
+    return (f":func:`{which}` on a worker thread: returns at once a "
+            "``concurrent.futures.Future`` whose ``result()`` is what the call returns (or "
+            "raises what it raises). Calls on one device take turns on its queue; the "
+            "arrays are read by the worker thread: leave them unchanged until the future "
+            "is done. Arguments as the blocking call.")
 
 
 @dev.serialised
-def occluded(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
-             triangle_test: str = "watertight", counters: bool = False,
-             batch_size: int = 1 << 20, stack_size: int | None = None,
-             return_hits: bool = False) -> np.ndarray | Hits:
-    """Whether each ray hits anything in ``[tmin, tmax]`` (any-hit traversal, stops at the first).
+def intersect(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
+              tmax: Any = np.inf, *, triangle_test: TriangleTest = "watertight",
+              counters: bool = False, batch_size: int = DEFAULT_BATCH,
+              stack_size: int | None = None,
+              invalid_rays: InvalidRays = "raise") -> Hits | DeviceHitArrays:
+    return _trace(target, origins, directions, tmin, tmax, False, triangle_test, counters,
+                  batch_size, stack_size, invalid_rays)
 
-    Arguments as :func:`intersect`. Returns ``bool (N,)``; with
-    ``return_hits=True`` the full :class:`Hits` instead (``hits.hit`` is the
-    answer, ``hits.overflow`` / ``hits.overflow_count`` report stack overflows,
-    ``t, prim, u, v`` describe the hit that was found, not necessarily the closest).
-    """
+
+@dev.serialised
+def occluded(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
+             tmax: Any = np.inf, *, triangle_test: TriangleTest = "watertight",
+             counters: bool = False, batch_size: int = DEFAULT_BATCH,
+             stack_size: int | None = None, return_hits: bool = False,
+             invalid_rays: InvalidRays = "raise"
+             ) -> np.ndarray | Hits | cl_array.Array | DeviceHitArrays:
     hits = _trace(target, origins, directions, tmin, tmax, True, triangle_test, counters,
-                  batch_size, stack_size)
+                  batch_size, stack_size, invalid_rays)
     return hits if return_hits else hits.hit
+
+
+intersect.__doc__ = query_doc("intersect", target=True)
+occluded.__doc__ = query_doc("occluded", target=True)
+
+
+# -- non-blocking calls -----------------------------------------------------------
+
+_EXECUTOR: ThreadPoolExecutor | None = None
+_EXECUTOR_LOCK = threading.Lock()
+
+
+def _executor() -> ThreadPoolExecutor:
+    """The threads that run non-blocking queries (made on first use). Queries on one
+    device take turns on its queue; the rays' host checks of several run in parallel."""
+    global _EXECUTOR
+    with _EXECUTOR_LOCK:
+        if _EXECUTOR is None:
+            _EXECUTOR = ThreadPoolExecutor(max_workers=4, thread_name_prefix="lbvh-query")
+        return _EXECUTOR
+
+
+def intersect_async(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
+                    tmax: Any = np.inf, *, triangle_test: TriangleTest = "watertight",
+                    counters: bool = False, batch_size: int = DEFAULT_BATCH,
+                    stack_size: int | None = None,
+                    invalid_rays: InvalidRays = "raise") -> "Future[Hits | DeviceHitArrays]":
+    return _executor().submit(intersect, target, origins, directions, tmin, tmax,
+                              triangle_test=triangle_test, counters=counters,
+                              batch_size=batch_size, stack_size=stack_size,
+                              invalid_rays=invalid_rays)
+
+
+def occluded_async(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
+                   tmax: Any = np.inf, *, triangle_test: TriangleTest = "watertight",
+                   counters: bool = False, batch_size: int = DEFAULT_BATCH,
+                   stack_size: int | None = None, return_hits: bool = False,
+                   invalid_rays: InvalidRays = "raise") -> "Future[Any]":
+    return _executor().submit(occluded, target, origins, directions, tmin, tmax,
+                              triangle_test=triangle_test, counters=counters,
+                              batch_size=batch_size, stack_size=stack_size,
+                              return_hits=return_hits, invalid_rays=invalid_rays)
+
+
+intersect_async.__doc__ = async_doc("intersect")
+occluded_async.__doc__ = async_doc("occluded")

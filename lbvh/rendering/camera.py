@@ -5,14 +5,26 @@ row-major order (ray ``row * width + column``), each through its pixel's centre.
 The camera looks from ``position`` towards ``target``; ``fov`` is the vertical
 field of view in degrees. Without a camera, :func:`frame_bounds` places one that
 sees the whole scene box.
+
+A views file is a JSON object of named cameras, each in the form of a scene
+file's ``"camera"`` (:meth:`Camera.from_dict`); keys starting with ``_`` are
+comments. :func:`load_views` reads one (by default the file that ships with
+the package, :func:`lbvh.data.views_path`: the benchmark scenes' views) and
+:func:`view_camera` makes the camera of one view.
 """
 from __future__ import annotations
 
+import json
 import math
+import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from ..data import views_path
+from ..mesh import MissingFileError
 
 #: Largest image side accepted (a 16k x 16k render is already 256M rays).
 MAX_SIDE = 16384
@@ -190,3 +202,64 @@ def frame_bounds(lower: Any, upper: Any, width: int = DEFAULT_SIZE[0], height: i
     needed = along + np.maximum(np.abs(corners @ right) / tan_h, np.abs(corners @ true_up) / tan_v)
     distance = max(float(needed.max()), float(along.max()) + 1e-3 * extent)
     return Camera(centre + distance * backwards, centre, up, fov, width, height)
+
+
+#: How messages name the views file that ships with the package.
+SHIPPED_VIEWS = "lbvh/data/cameras.json (shipped with lbvh)"
+
+
+def views_name(path: str | os.PathLike | None) -> str:
+    """How messages name a views file: its path, or :data:`SHIPPED_VIEWS` for ``None``."""
+    return SHIPPED_VIEWS if path is None else os.fspath(path)
+
+
+def read_json(file: Path, label: str | None = None) -> Any:
+    """The JSON value in ``file``, or ``ValueError`` starting with ``label`` (default:
+    the path) that says why not (unreadable, not UTF-8, not JSON)."""
+    label = str(file) if label is None else label
+    try:
+        return json.loads(file.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{label}: cannot read ({exc})") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{label}: not valid JSON ({exc})") from None
+
+
+def load_views(path: str | os.PathLike | None = None) -> dict[str, dict[str, Any]]:
+    """The named views of a views file (default: the one that ships with lbvh).
+
+    Returns ``{name: camera object}`` without the ``_`` comment keys; each
+    entry is checked when :func:`view_camera` uses it.
+
+    Raises:
+        ValueError: naming the file (missing, unreadable, not JSON, not an object
+            of objects).
+    """
+    file, label = Path(path) if path is not None else views_path(), views_name(path)
+    if not file.is_file():
+        raise MissingFileError(f"{label}: no such views file" + (" (a folder)" if file.is_dir() else ""))
+    data = read_json(file, label)
+    if not isinstance(data, dict):
+        raise ValueError(f"{label}: a views file is a JSON object of named cameras")
+    views = {name: view for name, view in data.items() if not name.startswith("_")}
+    for name, view in views.items():
+        if not isinstance(view, dict):
+            raise ValueError(f"{label}: view {name!r}: expected a camera object, got {view!r}")
+    return views
+
+
+def view_camera(name: str, path: str | os.PathLike | None = None,
+                size: tuple[int, int] | None = None) -> Camera:
+    """The camera of view ``name`` in a views file (default: the shipped one),
+    at ``size = (width, height)`` if given, else the view's size or 640x480.
+
+    Raises:
+        ValueError: naming the file and the view (unknown view, bad camera).
+    """
+    views, label = load_views(path), views_name(path)
+    if name not in views:
+        raise ValueError(f"{label}: no view {name!r} (views: {', '.join(views) or 'none'})")
+    try:
+        return Camera.from_dict(views[name], size=size)
+    except ValueError as exc:
+        raise ValueError(f"{label}: view {name!r}: {exc}") from None

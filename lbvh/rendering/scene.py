@@ -1,7 +1,9 @@
 """Loading scenes: a mesh file through trimesh, or a JSON scene description.
 
 A multi-mesh file (a scene graph in GLB/GLTF, several objects in an OBJ) is
-flattened with each node's transform applied. Problems (missing or unreadable
+flattened with each node's transform applied. :func:`load_scene` also takes the
+name of a mesh that ships with the package (``"teapot"``, :data:`lbvh.data.MESHES`)
+where no file of that name exists (:func:`find_scene`). Problems (missing or unreadable
 file, no triangles, NaN coordinates) raise ``ValueError`` naming the file.
 
 A scene description (``.json``) saves a view of a mesh::
@@ -24,7 +26,6 @@ camera the renderer frames the scene's bounds.
 """
 from __future__ import annotations
 
-import json
 import math
 import os
 from dataclasses import dataclass, field
@@ -33,8 +34,10 @@ from typing import Any
 
 import numpy as np
 
-from .camera import Camera
-from ..mesh import as_mesh, as_vertices
+from .camera import Camera, read_json
+from ..data import MESHES
+from ..data import path as shipped_mesh_path
+from ..mesh import MissingFileError, as_mesh, as_vertices
 
 MESH_SUFFIXES = {".obj", ".ply", ".stl", ".glb", ".gltf", ".off"}
 SCENE_SUFFIX = ".json"
@@ -58,7 +61,9 @@ def _require_file(path: Path) -> None:
     if path.is_dir():
         raise ValueError(f"{path}: a folder, not a file")
     if not path.is_file():
-        raise ValueError(f"{path}: no such file")
+        raise MissingFileError(f"{path}: no such file")
+    if path.stat().st_size == 0:
+        raise ValueError(f"{path}: the file is empty")
 
 
 def _obj_index_problem(path: Path) -> str | None:
@@ -127,14 +132,28 @@ def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"{path}: {exc}") from None
 
 
+def find_scene(path: str | os.PathLike) -> Path:
+    """The file :func:`load_scene` reads for ``path``: ``path`` itself when it
+    exists, else the shipped mesh of that name (``"teapot"``: ``lbvh/data/teapot.obj``),
+    else ``path`` (which is then reported missing)."""
+    file = Path(path)
+    if not file.exists() and os.fspath(path) in MESHES:
+        return shipped_mesh_path(os.fspath(path))
+    return file
+
+
 def load_scene(path: str | os.PathLike) -> Scene:
-    """Load a mesh file (see :data:`MESH_SUFFIXES`) or a ``.json`` scene description.
+    """Load a mesh file (see :data:`MESH_SUFFIXES`), a ``.json`` scene description,
+    or a shipped mesh by name (:func:`find_scene`; a file of that name wins).
 
     Raises:
         ValueError: naming the file and the problem (missing file, bad JSON,
             unknown key, bad camera or transform, bad mesh).
     """
-    path = Path(path)
+    path = find_scene(path)
+    if not path.exists() and not path.suffix and len(path.parts) == 1:
+        raise MissingFileError(f"{path}: no such file, nor a mesh that ships with lbvh "
+                               f"(shipped: {', '.join(MESHES)})")
     if path.suffix.lower() == SCENE_SUFFIX:
         return load_scene_description(path)
     v, f = load_mesh(path)
@@ -145,12 +164,7 @@ def load_scene_description(path: str | os.PathLike) -> Scene:
     """Load a ``.json`` scene description (format in the module docstring)."""
     path = Path(path)
     _require_file(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read ({exc})") from None
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    data = read_json(path)
     try:
         return _scene_from_dict(data, path)
     except ValueError as exc:

@@ -17,10 +17,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from dataclasses import asdict
 
 from . import hard_cases
+from ..progress import bar as progress_bar
 from .rules import Outcome
 from .runner import BUILDERS, run, warm_up
 
@@ -122,12 +124,12 @@ def cmd_check(args: argparse.Namespace) -> int:
     cases = select_cases(_split(args.cases), args.quick, args.large)
 
     def show(o: Outcome) -> None:
-        if args.json:
-            print(json.dumps(asdict(o)), flush=True)
-            return
-        print(format_row(o, WIDTHS), flush=True)
-        for failure in o.failures():
-            print(f"    {failure}", flush=True)
+        lines = [json.dumps(asdict(o))] if args.json else \
+            [format_row(o, WIDTHS)] + [f"    {failure}" for failure in o.failures()]
+        for line in lines:
+            runs.write(line, file=sys.stdout)   # above the bar, or plainly without one
+        sys.stdout.flush()
+        runs.update(1)
 
     if not args.json:
         print(f"{len(cases)} cases x {len(builders)} builders "
@@ -135,7 +137,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         print("  ".join(c.ljust(w) for c, w in zip(COLUMNS, WIDTHS)).rstrip(), flush=True)
     warm_up(builders, args.device)
     start = time.perf_counter()
-    outcomes = run(cases, builders, args.device, progress=show)
+    with progress_bar(len(cases) * len(builders), "lbvh check", "run") as runs:
+        outcomes = run(cases, builders, args.device, progress=show)
     if not args.json:
         print(f"\ntotals ({time.perf_counter() - start:.0f} s):")
         print(format_totals(outcomes))

@@ -34,7 +34,7 @@ from ..builders import bounds
 from ..builders import collapse
 from ..builders import emit
 from ..builders import morton
-from ..queries import ray_order
+from ..queries import closest, ray_order, rays
 from ..builders import refit
 from ..builders import restructure
 from ..device import sort
@@ -126,6 +126,17 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
             # the record width still set
             for extra in _product(WIDE=(1, 0), WIDTH=wide.WIDTHS, RAY_ORDER=(0, 1)):
                 add(traverse.KERNEL_FILE, {**base, **extra})
+    # device_rays.cl: the checks and marks (no defines), the result's arrays, and
+    # the conversion of each element type lbvh reads from pyopencl arrays
+    add(rays.DEVICE_KERNEL_FILE, {})
+    for counters in (0, 1):
+        add(rays.DEVICE_KERNEL_FILE, {"COUNTERS": counters})
+    for ctype in rays.DEVICE_SOURCE_TYPES.values():
+        add(rays.DEVICE_KERNEL_FILE, {"SRC_T": ctype, **({"SRC_IS_DOUBLE": 1}
+                                                          if ctype == "double" else {})})
+    # closest.cl: one stack size per bucket (NO_FP64 is for tests only)
+    for stack in traverse.STACK_BUCKETS:
+        add(closest.KERNEL_FILE, {"STACK_SIZE": stack})
     return list(out.values())
 
 

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 import lbvh
+from conftest import random_soup
 
 GOOD_V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
 GOOD_F = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
@@ -78,3 +79,75 @@ def test_a_mesh_too_large_for_the_device_is_refused_before_upload(ctx):
     with pytest.raises(lbvh.DeviceError, match="node buffer, more than .* largest allocation"):
         check_fits(ctx, too_many)
     check_fits(ctx, 1000)  # small meshes pass
+
+
+# -- what a new user passes (issue 19, item 1) ---------------------------------------
+
+def test_a_path_is_loaded(tmp_path):
+    import trimesh
+    path = tmp_path / "tet.obj"
+    trimesh.Trimesh(GOOD_V, GOOD_F, process=False).export(path)
+    for given in (str(path), path):
+        bvh = lbvh.build(given)
+        bvh.validate()
+        assert bvh.num_prims == len(GOOD_F)
+    with pytest.raises(ValueError, match="a path .* together with faces"):
+        lbvh.build(str(path), GOOD_F)
+
+
+def test_a_missing_or_empty_file_names_itself(tmp_path):
+    with pytest.raises(FileNotFoundError, match="absent.obj: no such file"):
+        lbvh.build(str(tmp_path / "absent.obj"))
+    with pytest.raises(ValueError, match="absent.obj: no such file"):   # also a ValueError
+        lbvh.build(tmp_path / "absent.obj")
+    (tmp_path / "empty.obj").write_text("")
+    with pytest.raises(ValueError, match="empty.obj: the file is empty"):
+        lbvh.build(tmp_path / "empty.obj")
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda t: t.Scene([t.creation.box(), t.creation.icosphere()]),
+     r"a trimesh.Scene of 2 geometries .* scene.to_mesh\(\)"),
+    (lambda t: t.PointCloud(GOOD_V), "a trimesh.PointCloud has vertices but no faces"),
+    (lambda t: 42, "got a int alone; pass vertices and faces"),
+    (lambda t: GOOD_V, "got a numpy.ndarray alone; pass vertices and faces"),
+])
+def test_what_was_passed_is_named_with_what_to_pass(make, message):
+    import trimesh
+    with pytest.raises(ValueError, match=message):
+        lbvh.build(make(trimesh))
+
+
+def test_a_mesh_with_its_faces_again_says_pass_it_alone():
+    import trimesh
+    mesh = trimesh.Trimesh(GOOD_V, GOOD_F, process=False)
+    with pytest.raises(ValueError, match=r"trimesh.Trimesh was passed together with faces; "
+                                         r"pass the mesh alone"):
+        lbvh.build(mesh, mesh.faces)
+
+
+# -- one name, one meaning (item 2) ----------------------------------------------------
+
+@pytest.mark.parametrize("asked", ["auto", 30, 63])
+def test_the_reported_key_bits_build_the_same_tree_again(asked):
+    v, f = random_soup(2000, seed=3)
+    first = lbvh.build(v, f, key_bits=asked)
+    report = first.report()
+    assert report.key_bits in (30, 63)
+    assert f"morton keys: {report.key_bits}-bit" in str(report)
+    again = lbvh.build(v, f, key_bits=report.key_bits)
+    assert again.report().key_bits == report.key_bits
+    assert np.array_equal(again.nodes, first.nodes)
+
+
+def test_lbvh_info_json_and_text_say_the_same_key_bits(tmp_path, capsys):
+    import json
+
+    import trimesh
+    from lbvh.cli import main
+    path = tmp_path / "tet.obj"
+    trimesh.Trimesh(GOOD_V, GOOD_F, process=False).export(path)
+    assert main(["info", str(path), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert main(["info", str(path)]) == 0
+    assert report["key_bits"] == 30 and "morton keys: 30-bit" in capsys.readouterr().out

@@ -93,12 +93,13 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
              lbvh.build(v, f, device=ctx, treelet_rounds=2),
              lbvh.build(v, f, device=ctx, treelet_rounds=1, collapse=True, max_leaf_size=4),
              lbvh.build(v, f, device=ctx, builder="sah")]
-    assert trees[3].build_report.key_bits == 64 and trees[2].build_report.key_bits == 32
+    assert trees[3].build_report.key_bits == 63 and trees[2].build_report.key_bits == 30
     for bvh in trees:
         for test in ("watertight", "moller"):
             for counters in (False, True):
                 bvh.intersect(o, d, triangle_test=test, counters=counters)
                 bvh.occluded(o, d, triangle_test=test, counters=counters)
+        bvh.closest_points(o)
         bvh.refit(v * np.float32(1.25) if len(bvh.vertices) == len(v) else bvh.vertices * 2)
         bvh.intersect(o, d)
     collapse_leaves(trees[7])
@@ -113,6 +114,17 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
     assert not binary.wide_records(max_bytes=0).packed
     binary.intersect(o, d)
     binary.occluded(o, d, counters=True)
+    # Rays in pyopencl arrays: float32 in place, every other element type converted,
+    # counters split, a bad ray turned into a miss.
+    import pyopencl.array as cl_array
+    for dtype in (np.float32, np.float64, np.int32, np.uint32, np.int64, np.uint64):
+        do = cl_array.to_device(ctx.queue, np.abs(o).astype(dtype))
+        dd = cl_array.to_device(ctx.queue, np.ones_like(d).astype(dtype))
+        bvh.intersect(do, dd, counters=True).get()
+    bad = d.copy()
+    bad[0] = np.nan
+    bvh.intersect(cl_array.to_device(ctx.queue, o), cl_array.to_device(ctx.queue, bad),
+                  invalid_rays="miss").get()
     # Every render mode.
     from lbvh.rendering.render import MODES
     cam = lbvh.Camera([0.5, 0.5, 3.0], [0.5, 0.5, 0.5], [0, 1, 0], 40.0, 8, 6)

@@ -146,3 +146,84 @@ def test_missing_scene_file_and_nested_scene(tmp_path):
     _write(tmp_path / "inner.json", {"mesh": "x.obj"})
     with pytest.raises(ValueError, match="scene description, not a mesh"):
         load_scene(_write(tmp_path / "outer.json", {"mesh": "inner.json"}))
+
+
+# -- what ships in the package: lbvh.data, shipped names, the views file --------------------
+
+def test_the_shipped_teapot_is_the_scenes_teapot():
+    import lbvh.data
+
+    v, f = lbvh.data.teapot()
+    assert v.dtype == np.float32 and f.dtype == np.uint32 and v.shape == (3644, 3) and f.shape == (6320, 3)
+    ref_v, ref_f = load_mesh(SCENES / "teapot.obj")        # through trimesh
+    assert np.array_equal(v, ref_v) and np.array_equal(f, ref_f)
+    assert lbvh.data.path("teapot").read_bytes() == (SCENES / "teapot.obj").read_bytes()
+    assert lbvh.data.MESHES == ("teapot",)
+    v[0] = 99.0                                             # every call gives new arrays
+    assert not np.array_equal(lbvh.data.mesh("teapot")[0], v)
+    with pytest.raises(ValueError, match=r"'cow' is not a mesh that ships with lbvh \(shipped: teapot\)"):
+        lbvh.data.path("cow")
+    notes = lbvh.data.path("teapot").parent / "licenses" / "common-3d-test-models_README.md"
+    assert notes.read_bytes() == (SCENES / "licenses" / "common-3d-test-models_README.md").read_bytes()
+
+
+def test_load_scene_takes_a_shipped_name_and_a_file_of_that_name_wins(tmp_path, monkeypatch):
+    import lbvh.data
+    from lbvh.rendering.scene import find_scene
+
+    monkeypatch.chdir(tmp_path)
+    scene = load_scene("teapot")
+    assert scene.name == "teapot" and len(scene.faces) == 6320 and scene.camera is None
+    assert find_scene("teapot") == lbvh.data.path("teapot")
+    _tetrahedron().export(tmp_path / "tet.obj")
+    (tmp_path / "teapot").symlink_to(tmp_path / "tet.obj")    # a file named teapot, here
+    assert find_scene("teapot") == Path("teapot")
+    with pytest.raises(ValueError, match="teapot: unknown mesh format"):
+        load_scene("teapot")
+    with pytest.raises(ValueError, match="teapt: no such file, nor a mesh that ships with lbvh"):
+        load_scene("teapt")
+    with pytest.raises(ValueError, match="^absent.obj: no such file$"):   # a path: no hint
+        load_scene("absent.obj")
+
+
+def test_the_shipped_views_are_the_bench_cameras():
+    import lbvh.data
+    from lbvh.rendering.camera import load_views, view_camera
+
+    assert not (REPO / "bench" / "cameras.json").exists()   # one set of views: the shipped one
+    views = load_views()
+    assert "_comment" not in views and {"teapot", "sponza", "sponza-atrium"} <= set(views)
+    for name in views:
+        camera = view_camera(name, size=(8, 6))
+        assert (camera.width, camera.height) == (8, 6)
+    atrium = view_camera("sponza-atrium")
+    assert atrium.position.tolist() == [75, 25, -3] and atrium.fov == 55
+    assert (atrium.width, atrium.height) == (640, 480)
+
+
+@pytest.mark.parametrize("text, message", [
+    (None, "no such views file"),
+    ("{oops", "not valid JSON"),
+    ("[]", "a views file is a JSON object of named cameras"),
+    ('{"a": [1, 2, 3]}', "view 'a': expected a camera object"),
+])
+def test_bad_views_files_name_the_file(tmp_path, text, message):
+    from lbvh.rendering.camera import load_views
+
+    path = tmp_path / "views.json"
+    if text is not None:
+        path.write_text(text)
+    with pytest.raises(ValueError, match=message) as info:
+        load_views(path)
+    assert str(path) in str(info.value)
+
+
+def test_a_bad_or_unknown_view_names_the_file_and_the_view(tmp_path):
+    from lbvh.rendering.camera import view_camera
+
+    path = _write(tmp_path / "views.json", {"good": GOOD_CAMERA, "wide": {**GOOD_CAMERA, "fov": 190}})
+    assert view_camera("good", path).fov == 45.0
+    with pytest.raises(ValueError, match=r"views.json: view 'wide': camera fov: 190"):
+        view_camera("wide", path)
+    with pytest.raises(ValueError, match=r"views.json: no view 'bad' \(views: good, wide\)"):
+        view_camera("bad", path)
