@@ -23,6 +23,7 @@ SCRIPT = r"""
 import hashlib, random, sys, threading, time
 import numpy as np
 import lbvh
+import pyopencl.array as cl_array
 from lbvh.rendering.camera import frame_bounds
 sys.path.insert(0, "tests")
 from conftest import random_soup, shipped_mesh
@@ -64,6 +65,12 @@ JOBS = {
     "views": lambda: (lambda b: digest(b.lower, b.upper, b.children, b.is_leaf))(lbvh.build(v, f)),
     "render": lambda: digest(lbvh.render(shared, camera, "normals").image),
     "render ao": lambda: digest(lbvh.render(shared, camera, "ao", ao_samples=2).image),
+    "closest points": lambda: digest(*(lambda c: (c.distance, c.prim, c.u, c.v))(
+        shared.closest_points(o[:500]))),
+    "intersect async": lambda: digest(*(lambda h: (h.t, h.prim))(
+        shared.intersect_async(o, d).result())),
+    "intersect device arrays": lambda: digest(*(lambda h: (h.t, h.prim))(shared.intersect(
+        cl_array.to_device(shared.ctx.queue, o), cl_array.to_device(shared.ctx.queue, d)).get())),
 }
 expected = {name: job() for name, job in JOBS.items()}   # single thread
 for name, job in JOBS.items():
