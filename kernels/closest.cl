@@ -28,6 +28,8 @@
  *   STACK_SIZE=n  stack entries; a push beyond n sets FLAG_OVERFLOW and skips
  *                 that subtree (the host sizes it from the tree's depth).
  *   NO_FP64=1     float32 arithmetic even where the device has doubles (tests).
+ *   POINT_ORDER=1 work-item k answers point order[k] (a permutation); the
+ *                 answers stay in the points' own slots.
  */
 #include "common.h"
 
@@ -36,6 +38,10 @@
 #endif
 
 #define FLAG_OVERFLOW 1
+
+#ifndef POINT_ORDER
+#define POINT_ORDER 0
+#endif
 
 #if defined(cl_khr_fp64) && !defined(NO_FP64)
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
@@ -118,11 +124,17 @@ inline void closest_on_triangle(real3 p, real3 a, real3 b, real3 c, real *out_v,
 __kernel void closest_points(__global const float4 *nodes, __global const int *prim_order,
                              __global const float *vertices, __global const uint *slot_faces,
                              const int root, const int num_nodes,
-                             __global const float *points, const float max_distance,
-                             const int count, __global float *distance, __global float *closest,
-                             __global int *prim, __global float *bary, __global int *flags) {
-    const int i = get_global_id(0);
-    if (i >= count) return;
+                             __global const float *points, __global const int *order,
+                             const float max_distance, const int count, __global float *distance,
+                             __global float *closest, __global int *prim, __global float *bary,
+                             __global int *flags) {
+    const int k = get_global_id(0);
+    if (k >= count) return;
+#if POINT_ORDER
+    const int i = order[k];   /* points in Morton order of their cells (ray_order.cl) */
+#else
+    const int i = k;
+#endif
     const real3 p = to_real3(load_float3(points, i));
     real best2 = (real)max_distance * (real)max_distance;
     int best_slot = -1;

@@ -18,21 +18,28 @@
 
 #define CELL_BITS 5
 
-/* t in [0, 1] to a cell in [0, 31]; NaN and values outside land in range. */
-inline uint cell_of(float t) {
-    float q = t * (float)(1 << CELL_BITS);
+/* Bits per axis of a query point's cell (point_keys): 10, a 30-bit key. */
+#define POINT_CELL_BITS 10
+
+/* t in [0, 1] to a cell in [0, 2^bits - 1]; NaN and values outside land in range. */
+inline uint cell_of_bits(float t, int bits) {
+    float q = t * (float)(1 << bits);
     q = q > 0.0f ? q : 0.0f;  /* NaN compares false: 0 */
-    q = q < (float)((1 << CELL_BITS) - 1) ? q : (float)((1 << CELL_BITS) - 1);
+    q = q < (float)((1 << bits) - 1) ? q : (float)((1 << bits) - 1);
     return (uint)q;
 }
 
-/* Interleave three cells, x highest (the bit order of morton.cl). */
-inline uint interleave(uint x, uint y, uint z) {
+/* Interleave three cells of `bits` bits, x highest (the bit order of morton.cl). */
+inline uint interleave_bits(uint x, uint y, uint z, int bits) {
     uint code = 0;
-    for (int b = CELL_BITS - 1; b >= 0; --b)
+    for (int b = bits - 1; b >= 0; --b)
         code = (code << 3) | (((x >> b) & 1u) << 2) | (((y >> b) & 1u) << 1) | ((z >> b) & 1u);
     return code;
 }
+
+inline uint cell_of(float t) { return cell_of_bits(t, CELL_BITS); }
+
+inline uint interleave(uint x, uint y, uint z) { return interleave_bits(x, y, z, CELL_BITS); }
 
 __kernel void ray_keys(__global const float *origins, __global const float *directions,
                        const int count, const int per_item, const float4 lower,
@@ -48,6 +55,23 @@ __kernel void ray_keys(__global const float *origins, __global const float *dire
         const uint origin_code = interleave(cell_of(a.x), cell_of(a.y), cell_of(a.z));
         const uint direction_code = interleave(cell_of(u.x), cell_of(u.y), cell_of(u.z));
         keys[i] = origin_code << (3 * CELL_BITS) | direction_code;
+        order[i] = i;
+    }
+}
+
+/* The same for query points (lbvh/queries/closest.py): the Morton code of the
+ * point's cell, 10 bits per axis, so that nearby points are answered one after
+ * the other and find the same nodes in cache. */
+__kernel void point_keys(__global const float *points, const int count, const int per_item,
+                         const float4 lower, const float4 inv_extent, __global uint *keys,
+                         __global int *order) {
+    const int gid = get_global_id(0);
+    const int last = chunk_last(gid, per_item, count);
+    for (int i = chunk_first(gid, per_item, count); i < last; ++i) {
+        const float3 a = (load_float3(points, i) - lower.xyz) * inv_extent.xyz;
+        keys[i] = interleave_bits(cell_of_bits(a.x, POINT_CELL_BITS),
+                                  cell_of_bits(a.y, POINT_CELL_BITS),
+                                  cell_of_bits(a.z, POINT_CELL_BITS), POINT_CELL_BITS);
         order[i] = i;
     }
 }

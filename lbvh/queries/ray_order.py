@@ -20,6 +20,10 @@ from ..device.sort import radix_sort
 
 KERNEL_FILE = "ray_order.cl"
 CELL_BITS = 5
+#: Bits per axis of a query point's cell (kernels/ray_order.cl point_keys).
+POINT_CELL_BITS = 10
+#: Point batches with fewer points are answered as given.
+MIN_POINTS = 1 << 14
 #: Batches with fewer rays are traced as given.
 MIN_RAYS = 1 << 16
 #: Trees with fewer nodes are traced as given (their records stay in cache anyway).
@@ -63,20 +67,46 @@ def ray_order(ctx: Context, origins: cl.Buffer, directions: cl.Buffer, count: in
     return result.values, [ev, *result.events]
 
 
+def point_order(ctx: Context, points: cl.Buffer, count: int, lower: np.ndarray,
+                upper: np.ndarray) -> tuple[cl.Buffer, list[cl.Event]]:
+    """``int32 (count,)`` device buffer: the query points' indices sorted by the Morton
+    code of their cell in the box ``lower``/``upper`` (10 bits per axis; stable).
+    The caller gives the returned buffer back to ``ctx.memory``."""
+    mem = MemoryTracker(ctx)
+    low, inv = key_box(lower, upper)
+    keys = mem.alloc(4 * count, scratch=True)
+    order = mem.alloc(4 * count)
+    launch = ctx.launch(count, min_per_item=4096)
+    ev = run(ctx, KERNEL_FILE, "point_keys", launch, points, count, launch.per_item, low, inv,
+             keys, order)
+    result = radix_sort(ctx, mem, keys, order, count, 32)
+    mem.free(result.keys)
+    mem.close()
+    return result.values, [ev, *result.events]
+
+
 # -- numpy twin ---------------------------------------------------------------------
 
-def _cells(t: np.ndarray) -> np.ndarray:
-    top = np.float32((1 << CELL_BITS) - 1)
-    q = t * np.float32(1 << CELL_BITS)
+def _cells(t: np.ndarray, bits: int = CELL_BITS) -> np.ndarray:
+    top = np.float32((1 << bits) - 1)
+    q = t * np.float32(1 << bits)
     q = np.where(q > 0, q, np.float32(0))
     return np.where(q < top, q, top).astype(np.uint32)
 
 
-def _interleave(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+def _interleave(x: np.ndarray, y: np.ndarray, z: np.ndarray, bits: int = CELL_BITS) -> np.ndarray:
     code = np.zeros(len(x), np.uint32)
-    for b in range(CELL_BITS - 1, -1, -1):
+    for b in range(bits - 1, -1, -1):
         code = (code << 3) | (((x >> b) & 1) << 2) | (((y >> b) & 1) << 1) | ((z >> b) & 1)
     return code
+
+
+def point_keys_numpy(points: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """Twin of the ``point_keys`` kernel: ``uint32 (N,)`` keys, same float32 operations."""
+    low, inv = key_box(lower, upper)
+    with np.errstate(over="ignore", invalid="ignore", under="ignore"):
+        a = (np.asarray(points, np.float32) - low[:3]) * inv[:3]
+    return _interleave(*(_cells(a[:, k], POINT_CELL_BITS) for k in range(3)), POINT_CELL_BITS)
 
 
 def ray_keys_numpy(origins: np.ndarray, directions: np.ndarray, lower: np.ndarray,

@@ -135,8 +135,8 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
         add(rays.DEVICE_KERNEL_FILE, {"SRC_T": ctype, **({"SRC_IS_DOUBLE": 1}
                                                           if ctype == "double" else {})})
     # closest.cl: one stack size per bucket (NO_FP64 is for tests only)
-    for stack in traverse.STACK_BUCKETS:
-        add(closest.KERNEL_FILE, {"STACK_SIZE": stack})
+    for stack, ordered in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
+        add(closest.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered})
     return list(out.values())
 
 

@@ -39,7 +39,7 @@ import pytest
 import lbvh
 from lbvh.api import collapse_leaves
 from lbvh.device import sort
-from lbvh.queries import ray_order
+from lbvh.queries import closest, ray_order
 from conftest import REPO, random_soup
 from lbvh import device as dev
 from lbvh.verification import kernel_variants as kv
@@ -133,11 +133,13 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
     # The ray order and the MSD sort run past thresholds (batches of 64K rays over
     # trees of 1M nodes; 64K keys): lowered here, they only decide whether.
     monkeypatch.setattr(ray_order, "MIN_RAYS", 256)
+    monkeypatch.setattr(closest, "MIN_POINTS", 256)
     monkeypatch.setattr(ray_order, "MIN_NODES", 256)
     monkeypatch.setattr(sort, "MSD_MIN_KEYS", 256)
     assert lbvh.queries.ray_order.worth_ordering(len(o), trees[0].num_nodes)
     trees[0].intersect(o, d)
     trees[4].occluded(o, d)
+    trees[0].closest_points(o)
     lbvh.build(v, f, device=ctx, key_bits=63).intersect(o, d)
 
 

@@ -150,3 +150,28 @@ def test_a_two_vertex_triangle_is_found(ctx):
     f = np.uint32([[0, 1, 2], [3, 4, 5]])
     got = lbvh.build(v, f).closest_points(np.float32([[0.5, 0.1, 0]]))
     assert got.prim[0] == 0 and abs(got.distance[0] - 0.1) <= 1e-6
+
+
+def test_points_in_morton_order_give_the_same_answers(monkeypatch):
+    """Large batches are answered in the Morton order of the points' cells
+    (kernels/ray_order.cl point_keys): every answer stays in its own slot."""
+    import lbvh.queries.closest as closest_module
+    from lbvh.queries.ray_order import point_keys_numpy
+    v, f = shipped_mesh("teapot.obj")
+    bvh = lbvh.build(v, f)
+    p = around(v, 3000, 10)
+    plain = bvh.closest_points(p)
+    monkeypatch.setattr(closest_module, "MIN_POINTS", 1000)
+    ordered = bvh.closest_points(p)
+    for name in ("distance", "prim", "u", "v"):
+        assert np.array_equal(getattr(ordered, name), getattr(plain, name)), name
+    # the keys the order came from, against their numpy twin
+    from lbvh import device as dev
+    lower, upper = bvh.tree.root_box()
+    ctx = bvh.ctx
+    buf = dev.to_device(ctx, p)
+    order, _ = closest_module.point_order(ctx, buf, len(p), lower, upper)
+    got = dev.from_device(ctx, order, np.int32, (len(p),))
+    ctx.memory.free(order)
+    want = np.argsort(point_keys_numpy(p, lower, upper), kind="stable")
+    assert np.array_equal(got, want)
