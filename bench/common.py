@@ -369,6 +369,29 @@ class Warp:
         return hit.numpy() != 0
 
 
+    def closest_points(self, mesh: Any, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Closest points by ``wp.mesh_query_point_no_sign``: ``(distance float32, face
+        int32)``; ``inf`` / ``-1`` where nothing was found."""
+        wp = self.wp
+        if getattr(self, "_closest", None) is None:
+            @wp.kernel
+            def closest(mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
+                        d_out: wp.array(dtype=float), face_out: wp.array(dtype=int)):
+                i = wp.tid()
+                q = wp.mesh_query_point_no_sign(mesh, points[i], 1.0e30)
+                if q.result:
+                    d_out[i] = wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - points[i])
+                    face_out[i] = q.face
+                else:
+                    d_out[i] = wp.inf
+                    face_out[i] = -1
+            self._closest = closest
+        n = len(points)
+        d, face = wp.empty(n, dtype=float, device="cpu"), wp.empty(n, dtype=int, device="cpu")
+        self._launch(self._closest, n, [mesh.id, self._vec3(points), d, face])
+        return d.numpy().astype(np.float32), face.numpy().astype(np.int32)
+
+
 #: The peers in the order the benches list them: family -> adapter class.
 PEERS = {"embree": Embree, "warp": Warp}
 
