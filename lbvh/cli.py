@@ -2,7 +2,8 @@
 
 ``lbvh render SCENE -o image.png`` renders a scene; ``lbvh info SCENE`` prints
 the build report of its BVH; ``lbvh devices`` lists the OpenCL devices;
-``lbvh check`` runs the hard-case suite (:mod:`lbvh.verification.check`) and exits 1 if a
+``lbvh query closest SCENE POINTS.npy`` gives the closest point of the mesh to
+each point; ``lbvh check`` runs the hard-case suite (:mod:`lbvh.verification.check`) and exits 1 if a
 case fails; ``lbvh --version`` prints the version.
 
 Where a command takes a scene it also takes the name of a mesh that ships with
@@ -26,10 +27,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from .api import build
 from .builders.options import BUILDERS
 from .device import DeviceError, all_devices, describe, find_device, get_context, pocl_target
 from .data import MESHES
+from .mesh import MissingFileError
 from .rendering.camera import (DEFAULT_FOV, DEFAULT_SIZE, MAX_SIDE, Camera, frame_bounds, view_camera,
                                views_name)
 from .rendering.image import image_kind
@@ -176,6 +180,62 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _read_points(path: str) -> np.ndarray:
+    """``(N, 3)`` points from a ``.npy`` file (or ``.txt``/``.csv``: three numbers a row)."""
+    file = Path(path)
+    if not file.is_file():
+        raise MissingFileError(f"{path}: no such file")
+    try:
+        if file.suffix.lower() == ".npy":
+            points = np.load(file, allow_pickle=False)
+        else:
+            points = np.loadtxt(file, delimiter="," if file.suffix.lower() == ".csv" else None,
+                                ndmin=2)
+    except (ValueError, OSError) as exc:
+        raise ValueError(f"{path}: cannot read points ({exc})") from None
+    return points
+
+
+def cmd_query(args: argparse.Namespace) -> int:
+    """``lbvh query closest SCENE POINTS [-o OUT.npz]``: the closest point of the mesh to
+    each point; a summary on stdout (or JSON), every answer in OUT.npz."""
+    if args.output is not None:
+        folder = Path(args.output).resolve().parent
+        if not folder.is_dir():
+            raise ValueError(f"{args.output}: cannot write, the folder {folder} does not exist")
+    points = _read_points(args.points)
+    scene = load_scene(args.scene)
+    bvh = _build(scene, args)
+    start = time.perf_counter()
+    got = bvh.closest_points(points, max_distance=args.max_distance)
+    seconds = time.perf_counter() - start
+    if args.output is not None:
+        with open(args.output, "wb") as out:   # the name as given, no suffix added
+            np.savez(out, distance=got.distance, points=got.points, prim=got.prim, u=got.u,
+                     v=got.v, found=got.found)
+    found = got.distance[got.found]
+    summary = {"scene": _scene_name(args.scene), "points": len(got),
+               "found": int(got.found.sum()), "seconds": seconds,
+               "distance_min": float(found.min()) if len(found) else None,
+               "distance_median": float(np.median(found)) if len(found) else None,
+               "distance_max": float(found.max()) if len(found) else None,
+               "overflow": got.overflow_count, "output": args.output}
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"scene:     {summary['scene']}")
+        print(f"points:    {len(got):,} from {args.points}; {summary['found']:,} with a triangle "
+              f"within {args.max_distance:g}")
+        if len(found):
+            print(f"distance:  min {summary['distance_min']:.6g}, median "
+                  f"{summary['distance_median']:.6g}, max {summary['distance_max']:.6g}")
+        print(f"query:     {seconds * 1e3:.1f} ms ({len(got) / max(seconds, 1e-9) / 1e6:.2f} "
+              "Mpoints/s)")
+        if args.output is not None:
+            print(f"wrote:     {args.output} (distance, points, prim, u, v, found)")
+    return 0
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     # Everything the user typed is checked before the (slow) build starts.
     image_kind(args.output)
@@ -299,6 +359,18 @@ def make_parser() -> argparse.ArgumentParser:
     _add_camera_options(p)
     _add_build_options(p)
     p.set_defaults(func=cmd_render)
+    p = sub.add_parser("query", help="point queries on a scene's mesh (closest points)")
+    p.add_argument("kind", choices=["closest"], help="closest: the nearest point of the mesh")
+    p.add_argument("scene", help=SCENE_HELP)
+    p.add_argument("points", help="query points: a .npy of shape (N, 3), or a .txt/.csv of "
+                                  "three numbers a row")
+    p.add_argument("-o", "--output", default=None, metavar="OUT.npz",
+                   help="write every answer (distance, points, prim, u, v, found) to this file")
+    p.add_argument("--max-distance", type=float, default=float("inf"), metavar="R",
+                   help="search radius: beyond it a point finds nothing (default: none)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    _add_build_options(p)
+    p.set_defaults(func=cmd_query)
     p = sub.add_parser("check", help="run the hard-case suite with every builder and report")
     add_check_arguments(p)
     p.set_defaults(func=cmd_check)

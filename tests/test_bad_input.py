@@ -73,6 +73,9 @@ class Env:
         (t / "between_lines.obj").write_text("".join(obj.splitlines(True)[:-3]))
         tri = "v 0 0 0\nv 1 0 0\nv 0 1 0\n"
         (t / "nan.obj").write_text("v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n")
+        np.save(t / "points.npy", np.float32([[0, 0, 0], [1, 2, 3]]))
+        np.save(t / "points_2d.npy", np.zeros((4, 2), np.float32))
+        np.save(t / "points_nan.npy", np.float32([[0, 0, 0], [np.nan, 0, 0]]))
         (t / "inf.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 -inf 0\nf 1 2 3\n")
         (t / "huge.obj").write_text("v 0 0 0\nv 1e39 0 0\nv 0 1 0\nf 1 2 3\n")
         (t / "out_of_range.obj").write_text(tri + "f 1 2 3\nf 1 2 7\n")
@@ -397,6 +400,18 @@ ROWS: list[Row] = [
     Row("lbvh render", "--size 0x10", lambda e: [
         "render", e.path("good.obj"), "-o", e.path("out.png"), "--size", "0x10"], SystemExit,
         "--size: '0x10'", command=True),
+    Row("lbvh query", "points file missing", lambda e: [
+        "query", "closest", e.path("good.obj"), e.path("absent.npy")], SystemExit,
+        "absent.npy: no such file", command=True),
+    Row("lbvh query", "points of shape (N, 2)", lambda e: [
+        "query", "closest", e.path("good.obj"), e.path("points_2d.npy")], SystemExit,
+        "points: shape (4, 2), expected (N, 3)", command=True),
+    Row("lbvh query", "a NaN point", lambda e: [
+        "query", "closest", e.path("good.obj"), e.path("points_nan.npy")], SystemExit,
+        "points: point 1 has a NaN", command=True),
+    Row("lbvh query", "--max-distance -1", lambda e: [
+        "query", "closest", e.path("good.obj"), e.path("points.npy"), "--max-distance=-1"],
+        SystemExit, "max_distance: -1.0", command=True),
     Row("lbvh render", "--mode xray", lambda e: [
         "render", e.path("good.obj"), "-o", e.path("out.png"), "--mode", "xray"], SystemExit,
         "invalid choice: 'xray'", command=True),

@@ -293,3 +293,39 @@ def test_parse_vector():
     for bad in ("nan,0,0", "0,inf,0", "0,0,-inf"):
         with pytest.raises(ValueError, match="NaN or infinite"):
             parse_vector("--eye", bad)
+
+
+# -- lbvh query closest (issue 17) ---------------------------------------------------
+
+def test_query_closest_writes_the_answers_of_closest_points(capsys, tmp_path):
+    import lbvh
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-3, 3, (500, 3)).astype(np.float32)
+    np.save(tmp_path / "points.npy", points)
+    out = tmp_path / "near"            # written as named, no suffix added
+    assert main(["query", "closest", "teapot", str(tmp_path / "points.npy"), "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "points:    500 from" in text and "wrote:" in text
+    want = lbvh.build(*lbvh.data.teapot()).closest_points(points)
+    with np.load(out) as got:
+        for name in ("distance", "prim", "u", "v", "found"):
+            assert np.array_equal(got[name], getattr(want, name)), name
+    (tmp_path / "points.csv").write_text("\n".join(",".join(map(str, p)) for p in points[:20]))
+    assert main(["query", "closest", "teapot", str(tmp_path / "points.csv"), "--json",
+                 "--max-distance", "0.5"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["points"] == 20 and summary["found"] == int((want.distance[:20] <= 0.5).sum())
+
+
+@pytest.mark.parametrize("make, fragment", [
+    (lambda d: d / "absent.npy", "absent.npy: no such file"),
+    (lambda d: (np.save(d / "flat.npy", np.zeros((4, 2))), d / "flat.npy")[1],
+     "points: shape (4, 2), expected (N, 3)"),
+    (lambda d: (np.save(d / "nan.npy", np.float32([[0, 0, 0], [np.nan, 1, 1]])), d / "nan.npy")[1],
+     "points: point 1 has a NaN"),
+    (lambda d: ((d / "bad.txt").write_text("1 2\n3 4 5\n"), d / "bad.txt")[1], "cannot read points"),
+])
+def test_query_errors_are_one_line_and_exit_2(capsys, tmp_path, make, fragment):
+    assert main(["query", "closest", "teapot", str(make(tmp_path))]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("lbvh: error:") and fragment in err[0]
