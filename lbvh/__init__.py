@@ -5,6 +5,7 @@ Entry points:
                options=None | lbvh.LBVHOptions | lbvh.SAHOptions, **fields) -> lbvh.BVH
     bvh.intersect(origins, directions) / bvh.occluded(...)  (ray queries) -> lbvh.Hits
     bvh.closest_points(points, max_distance=inf)  (point queries) -> lbvh.Closest
+    bvh.overlapping(lower, upper)  (box queries) -> lbvh.Overlaps
     lbvh.load(path) -> lbvh.BVH
     lbvh.render(bvh, lbvh.Camera(...), mode)
     lbvh.sah_cost(bvh), lbvh.tree_quality(bvh)  (the tree's quality)
@@ -38,6 +39,7 @@ from .builders.options import CollapseOptions, LBVHOptions, SAHOptions
 from .bvh import BVH
 from .device import CONTEXT_CHECKS, DeviceError
 from .queries.closest import Closest
+from .queries.overlap import Overlaps
 from .queries.traverse import Hits
 from .rendering.camera import Camera
 from .rendering.render import render
@@ -52,6 +54,6 @@ from .version import __version__
 if _self_test not in CONTEXT_CHECKS:
     CONTEXT_CHECKS.append(_self_test)
 
-__all__ = ["build", "load", "BVH", "Hits", "Closest", "LBVHOptions", "SAHOptions", "CollapseOptions",
+__all__ = ["build", "load", "BVH", "Hits", "Closest", "Overlaps", "LBVHOptions", "SAHOptions", "CollapseOptions",
            "render", "Camera", "load_scene", "sah_cost", "tree_quality", "BVHValidationError",
            "DeviceError", "data", "__version__"]

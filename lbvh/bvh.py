@@ -23,8 +23,9 @@ from . import device as dev
 from .builders.refit import refit_boxes
 from .layout import NODE_DTYPE, children_of, is_leaf, node_depths, parents_of, prim_range_of
 from .mesh import as_faces, as_vertices
-from .queries import closest, traverse
+from .queries import closest, overlap, traverse
 from .queries.closest import Closest
+from .queries.overlap import Overlaps
 from .queries.rays import InvalidRays
 from .queries.traverse import DeviceHitArrays, Hits
 from .queries.wide import Wide, make_wide, release_wide, wide_buffers, write_records
@@ -286,6 +287,11 @@ class BVH:
         distance, point, triangle and barycentrics; see
         :func:`lbvh.queries.closest.closest_points`."""
         return closest.closest_points(self, points, max_distance, batch_size=batch_size)
+
+    def overlapping(self, lower: Any, upper: Any) -> Overlaps:
+        """The triangles whose boxes overlap each query box ``[lower[i], upper[i]]``, as
+        flat arrays with offsets; see :func:`lbvh.queries.overlap.overlapping`."""
+        return overlap.overlapping(self, lower, upper)
 
     # -- persistence ------------------------------------------------------------
     def save(self, path: str | os.PathLike) -> None:

@@ -318,6 +318,15 @@ ROWS: list[Row] = [
         lambda e: e.bvh.closest_points(e.o, max_distance=float("nan")), ValueError,
         "max_distance: nan"),
     Row("bvh.closest_points", "no points", lambda e: e.bvh.closest_points(np.zeros((0, 3))), None),
+    # bvh.overlapping
+    Row("bvh.overlapping", "NaN corner", lambda e: e.bvh.overlapping(
+        _rays(e, o=(2, 1, np.nan))[0], e.o + 1), ValueError, "lower: box 2 has a NaN"),
+    Row("bvh.overlapping", "lower > upper", lambda e: e.bvh.overlapping(e.o + 1, e.o),
+        ValueError, "box 0 has lower"),
+    Row("bvh.overlapping", "different box counts", lambda e: e.bvh.overlapping(e.o, e.o[:3]),
+        ValueError, "upper: 3 boxes, but lower has 64"),
+    Row("bvh.overlapping", "no boxes", lambda e: e.bvh.overlapping(np.zeros((0, 3)),
+                                                                   np.zeros((0, 3))), None),
     # lbvh.render
     Row("lbvh.render", "unknown mode", lambda e: lbvh.render(e.bvh, e.camera, "xray"),
         ValueError, "'xray'"),

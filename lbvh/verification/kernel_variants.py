@@ -34,7 +34,7 @@ from ..builders import bounds
 from ..builders import collapse
 from ..builders import emit
 from ..builders import morton
-from ..queries import closest, ray_order, rays
+from ..queries import closest, overlap, ray_order, rays
 from ..builders import refit
 from ..builders import restructure
 from ..device import sort
@@ -134,6 +134,9 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     for ctype in rays.DEVICE_SOURCE_TYPES.values():
         add(rays.DEVICE_KERNEL_FILE, {"SRC_T": ctype, **({"SRC_IS_DOUBLE": 1}
                                                           if ctype == "double" else {})})
+    # overlap.cl: both passes, one stack size per bucket
+    for stack, count in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
+        add(overlap.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count})
     # closest.cl: one stack size per bucket (NO_FP64 is for tests only)
     for stack, ordered in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
         add(closest.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered})
