@@ -90,19 +90,22 @@ class Tree:
         own = [self.nodes, self.parent, self.prim_order]
         return own + ([self.leaf_nodes_buf] if self.leaf_nodes_buf is not None else [])
 
-    def root_words(self) -> tuple[int, int]:
-        """The root record's ``a`` and ``b`` words, read from the device."""
-        words = np.empty(8, np.int32)
-        cl.enqueue_copy(self.ctx.queue, words, self.nodes, src_offset=NODE_DTYPE.itemsize * self.root,
-                        is_blocking=True)
-        return int(words[3]), int(words[7])
-
-    def root_box(self) -> tuple[np.ndarray, np.ndarray]:
-        """``float32 (3,)`` lower and upper corner of the root's box, read from the device."""
-        record = np.empty(8, np.float32)
+    def root_record(self) -> np.ndarray:
+        """The root's node record (:data:`lbvh.layout.NODE_DTYPE`), read from the device."""
+        record = np.empty(1, NODE_DTYPE)
         cl.enqueue_copy(self.ctx.queue, record, self.nodes,
                         src_offset=NODE_DTYPE.itemsize * self.root, is_blocking=True)
-        return record[:3], record[4:7]
+        return record[0]
+
+    def root_words(self) -> tuple[int, int]:
+        """The root record's ``a`` and ``b`` words."""
+        record = self.root_record()
+        return int(record["a"]), int(record["b"])
+
+    def root_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """``float32 (3,)`` lower and upper corner of the root's box."""
+        record = self.root_record()
+        return record["lower"].copy(), record["upper"].copy()
 
 
 def upload_tree(ctx: Context, nodes: np.ndarray, parent: np.ndarray, prim_order: np.ndarray,

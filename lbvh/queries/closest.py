@@ -26,7 +26,7 @@ from .. import device as dev
 from ..mesh import real_array
 from .ray_order import MIN_POINTS, point_order
 from .target import QueryTarget
-from .traverse import STACK_BUCKETS
+from .traverse import stack_bucket
 
 KERNEL_FILE = "closest.cl"
 
@@ -94,8 +94,7 @@ def _max_distance(max_distance: Any) -> np.float32:
 
 def stack_size_for(target: QueryTarget) -> int:
     """Stack entries for this tree: one push per level at most, rounded up to a bucket."""
-    need = target.traversal_depth() + 1
-    return next((b for b in STACK_BUCKETS if need <= b), STACK_BUCKETS[-1])
+    return stack_bucket(target.traversal_depth() + 1)
 
 
 @dev.serialised

@@ -286,11 +286,12 @@ def stack_need(target: QueryTarget) -> int:
 def stack_size_for(target: QueryTarget) -> int:
     """Stack entries the kernel gets for this tree: :func:`stack_need` rounded up
     to a bucket (the last bucket if none holds it: then rays may overflow, flagged)."""
-    need = stack_need(target)
-    for bucket in STACK_BUCKETS:
-        if need <= bucket:
-            return bucket
-    return STACK_BUCKETS[-1]
+    return stack_bucket(stack_need(target))
+
+
+def stack_bucket(need: int) -> int:
+    """The first of :data:`STACK_BUCKETS` that holds ``need`` entries, else the last."""
+    return next((b for b in STACK_BUCKETS if need <= b), STACK_BUCKETS[-1])
 
 
 def slab_pad(ctx: dev.Context) -> str:
