@@ -23,7 +23,8 @@ from . import device as dev
 from .builders.refit import refit_boxes
 from .layout import NODE_DTYPE, children_of, is_leaf, node_depths, parents_of, prim_range_of
 from .mesh import as_faces, as_vertices
-from .queries import closest, overlap, traverse
+from .queries import all_hits as hits_along, closest, overlap, traverse
+from .queries.all_hits import AllHits
 from .queries.closest import Closest
 from .queries.overlap import Overlaps
 from .queries.rays import InvalidRays
@@ -279,6 +280,25 @@ class BVH:
     occluded.__doc__ = traverse.query_doc("occluded", target=False)
     intersect_async.__doc__ = traverse.async_doc("intersect")
     occluded_async.__doc__ = traverse.async_doc("occluded")
+
+    # -- every hit (lbvh/queries/all_hits.py, kernels/all_hits.cl) ---------------
+    def count_hits(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
+                   batch_size: int = hits_along.DEFAULT_BATCH,
+                   invalid_rays: InvalidRays = "raise") -> np.ndarray:
+        """``int32 (N,)``: how many times each ray crosses the mesh in ``[tmin, tmax]``, a
+        crossing through a shared edge or vertex once; see
+        :func:`lbvh.queries.all_hits.count_hits`."""
+        return hits_along.count_hits(self, origins, directions, tmin, tmax,
+                                     batch_size=batch_size, invalid_rays=invalid_rays)
+
+    def all_hits(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
+                 max_hits: int | None = None, batch_size: int = hits_along.DEFAULT_BATCH,
+                 invalid_rays: InvalidRays = "raise") -> AllHits:
+        """Every hit of each ray in ``[tmin, tmax]``, nearest first, as flat arrays with
+        per-ray offsets (at most ``max_hits`` per ray, the nearest); see
+        :func:`lbvh.queries.all_hits.all_hits`."""
+        return hits_along.all_hits(self, origins, directions, tmin, tmax, max_hits=max_hits,
+                                   batch_size=batch_size, invalid_rays=invalid_rays)
 
     # -- point queries (lbvh/queries/closest.py, kernels/closest.cl) ------------
     def closest_points(self, points: Any, max_distance: float = np.inf, *,

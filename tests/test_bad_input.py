@@ -307,6 +307,23 @@ ROWS: list[Row] = [
         TypeError, "closest"),
     Row("bvh.occluded", "unknown invalid_rays", lambda e: e.bvh.occluded(
         e.o, e.d, invalid_rays=True), ValueError, "invalid_rays: True"),
+    # bvh.count_hits and bvh.all_hits
+    Row("bvh.count_hits", "NaN direction", lambda e: e.bvh.count_hits(*_rays(e, d=(3, 1, np.nan))),
+        ValueError, "ray 3"),
+    Row("bvh.count_hits", "directions of shape (N, 2)", lambda e: e.bvh.count_hits(e.o, e.d[:, :2]),
+        ValueError, "shape (64, 2)"),
+    Row("bvh.count_hits", "batch_size=0", lambda e: e.bvh.count_hits(e.o, e.d, batch_size=0),
+        ValueError, "batch_size: 0"),
+    Row("bvh.count_hits", "no rays", lambda e: e.bvh.count_hits(np.zeros((0, 3)), np.zeros((0, 3))),
+        None),
+    Row("bvh.all_hits", "tmin > tmax", lambda e: e.bvh.all_hits(e.o, e.d, tmin=1.0, tmax=0.5),
+        ValueError, "ray 0 has tmin 1.0 > tmax 0.5"),
+    Row("bvh.all_hits", "negative max_hits", lambda e: e.bvh.all_hits(e.o, e.d, max_hits=-1),
+        ValueError, "max_hits: -1"),
+    Row("bvh.all_hits", "max_hits=2.5", lambda e: e.bvh.all_hits(e.o, e.d, max_hits=2.5),
+        ValueError, "max_hits: 2.5"),
+    Row("bvh.all_hits", "NaN origin with invalid_rays=\"miss\"", lambda e: e.bvh.all_hits(
+        *_rays(e, o=(7, 0, np.nan)), invalid_rays="miss"), None),
     # bvh.closest_points
     Row("bvh.closest_points", "NaN point", lambda e: e.bvh.closest_points(_rays(e, o=(2, 1, np.nan))[0]),
         ValueError, "point 2 has a NaN"),

@@ -67,6 +67,8 @@ JOBS = {
     "render ao": lambda: digest(lbvh.render(shared, camera, "ao", ao_samples=2).image),
     "closest points": lambda: digest(*(lambda c: (c.distance, c.prim, c.u, c.v))(
         shared.closest_points(o[:500]))),
+    "count hits": lambda: digest(shared.count_hits(o, d)),
+    "all hits": lambda: digest(*(lambda a: (a.offsets, a.t, a.prim))(shared.all_hits(o, d, max_hits=3))),
     "intersect async": lambda: digest(*(lambda h: (h.t, h.prim))(
         shared.intersect_async(o, d).result())),
     "intersect device arrays": lambda: digest(*(lambda h: (h.t, h.prim))(shared.intersect(

@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from ..mesh import as_faces, as_vertices
+from ..queries.all_hits import AllHits
 from ..queries.traverse import Hits, check_rays
 
 #: Sine of the angle between two edges below which the oracle calls a triangle degenerate.
@@ -166,11 +167,31 @@ class _Rays:
             self.negative = np.signbit(traced)
 
 
+def _edge_sign(F: np.ndarray, px: np.ndarray, py: np.ndarray, qx: np.ndarray,
+               qy: np.ndarray) -> np.ndarray:
+    """EDGE_SIGN of kernels/ray_triangle.h: the sign of ``F``, and where ``F == 0`` the sign
+    at the ray moved by ``(eps, eps^2)``: of ``py - qy``, then of ``qx - px``."""
+    tie = np.where(py > qy, 1, np.where(py < qy, -1, np.where(qx > px, 1,
+                                                              np.where(qx < px, -1, 0))))
+    return np.where(F > 0, 1, np.where(F < 0, -1, tie))
+
+
+def _inside(U, V, W, ax, ay, bx, by, cx, cy, edge_rule: bool) -> np.ndarray:
+    """RAY_INSIDE of kernels/ray_triangle.h (``det != 0`` is checked apart)."""
+    if edge_rule:
+        su, sv, sw = (_edge_sign(U, cx, cy, bx, by), _edge_sign(V, ax, ay, cx, cy),
+                      _edge_sign(W, bx, by, ax, ay))
+        return (su == sv) & (sv == sw) & (su != 0)
+    return ~(((U < 0) | (V < 0) | (W < 0)) & ((U > 0) | (V > 0) | (W > 0)))
+
+
 def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: np.ndarray,
-               skip: np.ndarray, dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               skip: np.ndarray, dtype, edge_rule: bool = False
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Woop 2013 for the pairs (``ray[k]``, ``tri[k]``): ``t, u, v`` per pair, ``t = inf`` on a miss.
 
-    tmin/tmax are not applied here. Operation order follows kernels/traverse.cl.
+    tmin/tmax are not applied here. Operation order follows kernels/ray_triangle.h;
+    ``edge_rule``: its EDGE_RULE (a ray through a shared edge or vertex hits one triangle).
     """
     axes = rays.axes[ray]
     o = rays.o_perm[ray]
@@ -193,7 +214,7 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
         W = bx * ay - by * ax
         det = U + V + W
         T = U * (sz * z[0]) + V * (sz * z[1]) + W * (sz * z[2])
-        inside = ~(((U < 0) | (V < 0) | (W < 0)) & ((U > 0) | (V > 0) | (W > 0))) & (det != 0)
+        inside = _inside(U, V, W, ax, ay, bx, by, cx, cy, edge_rule) & (det != 0)
         t = T / det
         bu = V / det
         bv = W / det
@@ -215,8 +236,7 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
                 detd = Ud + Vd + Wd
                 szd = sz[redo].astype(np.float64)
                 Td = Ud * (szd * zd[0]) + Vd * (szd * zd[1]) + Wd * (szd * zd[2])
-                inside[redo] = (~(((Ud < 0) | (Vd < 0) | (Wd < 0)) & ((Ud > 0) | (Vd > 0) | (Wd > 0)))
-                                & (detd != 0))
+                inside[redo] = _inside(Ud, Vd, Wd, *d, edge_rule) & (detd != 0)
                 t[redo] = (Td / detd).astype(np.float32)
                 bu[redo] = (Vd / detd).astype(np.float32)
                 bv[redo] = (Wd / detd).astype(np.float32)
@@ -236,8 +256,8 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
                 Vh = xs[0] * ys[2] - ys[0] * xs[2]
                 Wh = xs[1] * ys[0] - ys[1] * xs[0]
                 deth = Uh + Vh + Wh
-                inside[h] = (~(((Uh < 0) | (Vh < 0) | (Wh < 0)) & ((Uh > 0) | (Vh > 0) | (Wh > 0)))
-                             & (deth != 0))
+                inside[h] = _inside(Uh, Vh, Wh, xs[0], ys[0], xs[1], ys[1], xs[2], ys[2],
+                                    edge_rule) & (deth != 0)
                 t[h] = ((Uh * zs[0] + Vh * zs[1] + Wh * zs[2]) / (deth * ezd)).astype(np.float32)
                 bu[h] = (Vh / deth).astype(np.float32)
                 bv[h] = (Wh / deth).astype(np.float32)
@@ -348,6 +368,29 @@ def _candidate_pairs(rays: _Rays, num_tris: int, blocks, max_pairs: int):
             yield ray[s:s + max_pairs], order[slot[s:s + max_pairs]]
 
 
+def _every_hit(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: Any, tmax: Any,
+               dtype, cull: bool, max_pairs: int, edge_rule: bool
+               ) -> tuple[_Rays, list[tuple[np.ndarray, ...]]]:
+    """Every (ray, triangle, t, u, v) hit in ``[tmin, tmax]``, in chunks."""
+    dtype = np.dtype(dtype).type
+    if dtype not in (np.float32, np.float64):
+        raise ValueError(f"dtype: {dtype}; expected float32 or float64")
+    v = as_vertices(vertices)
+    f = as_faces(faces, len(v)).astype(np.int64)
+    rays = _Rays(origins, directions, tmin, tmax, dtype)
+    skip = degenerate_triangles(v, f, dtype)
+    blocks = None
+    if cull:
+        scale = max(float(np.abs(v).max()), float(np.abs(rays.origin).max(initial=0.0)), 1e-30)
+        blocks = _blocks(v, f, BLOCK_PADDING * scale)
+    found = []
+    for ray, tri in _candidate_pairs(rays, len(f), blocks, max_pairs):
+        t, bu, bv = _pair_hits(v, f, rays, ray, tri, skip, dtype, edge_rule)
+        ok = (t >= rays.tmin[ray]) & (t <= rays.tmax[ray]) & (t < np.inf)
+        found.append((ray[ok], tri[ok], t[ok], bu[ok], bv[ok]))
+    return rays, found
+
+
 def brute_force(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: Any = 0.0,
                 tmax: Any = np.inf, *, dtype=np.float64, cull: bool = True,
                 max_pairs: int = 1 << 18) -> Hits:
@@ -365,22 +408,8 @@ def brute_force(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: 
         :class:`lbvh.queries.traverse.Hits`, float32 fields (the oracle's float64 ``t, u, v``
         rounded to nearest), ``overflow`` all ``False``.
     """
-    dtype = np.dtype(dtype).type
-    if dtype not in (np.float32, np.float64):
-        raise ValueError(f"dtype: {dtype}; expected float32 or float64")
-    v = as_vertices(vertices)
-    f = as_faces(faces, len(v)).astype(np.int64)
-    rays = _Rays(origins, directions, tmin, tmax, dtype)
-    skip = degenerate_triangles(v, f, dtype)
-    blocks = None
-    if cull:
-        scale = max(float(np.abs(v).max()), float(np.abs(rays.origin).max(initial=0.0)), 1e-30)
-        blocks = _blocks(v, f, BLOCK_PADDING * scale)
-    found = []
-    for ray, tri in _candidate_pairs(rays, len(f), blocks, max_pairs):
-        t, bu, bv = _pair_hits(v, f, rays, ray, tri, skip, dtype)
-        ok = (t >= rays.tmin[ray]) & (t <= rays.tmax[ray]) & (t < np.inf)
-        found.append((ray[ok], tri[ok], t[ok], bu[ok], bv[ok]))
+    rays, found = _every_hit(vertices, faces, origins, directions, tmin, tmax, dtype, cull,
+                             max_pairs, edge_rule=False)
     n = rays.count
     out = Hits(t=np.full(n, np.inf, np.float32), prim=np.full(n, -1, np.int32),
                u=np.zeros(n, np.float32), v=np.zeros(n, np.float32),
@@ -413,3 +442,33 @@ def hits_on(vertices: Any, faces: Any, origins: Any, directions: Any, prims: Any
     prims = np.asarray(prims, np.int64)
     skip = degenerate_triangles(v, f, dtype)
     return _pair_hits(v, f, rays, np.arange(rays.count), prims, skip, dtype)
+
+
+def all_hits_brute(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: Any = 0.0,
+                   tmax: Any = np.inf, *, dtype=np.float64, cull: bool = True,
+                   max_pairs: int = 1 << 18) -> AllHits:
+    """Every hit of every ray against every triangle, with the edge rule of
+    kernels/all_hits.cl (a ray through a shared edge or vertex hits one of its
+    triangles): the twin of :func:`lbvh.queries.all_hits.all_hits` (``dtype=np.float32``:
+    the same hits, ``t, u, v`` bit for bit) and its oracle (``np.float64``).
+
+    Returns :class:`lbvh.queries.all_hits.AllHits`, nearest first per ray (equal ``t``:
+    lower triangle first), nothing truncated.
+    """
+    rays, found = _every_hit(vertices, faces, origins, directions, tmin, tmax, dtype, cull,
+                             max_pairs, edge_rule=True)
+    n = rays.count
+    if found:
+        ray, tri, t, bu, bv = (np.concatenate(cols) for cols in zip(*found))
+    else:
+        ray, tri = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        t = bu = bv = np.zeros(0)
+    with np.errstate(over="ignore"):
+        t = (t + 0).astype(np.float32)
+    order = np.lexsort((tri, t, ray))
+    total = np.bincount(ray, minlength=n).astype(np.int64)
+    offsets = np.zeros(n + 1, np.int64)
+    np.cumsum(total, out=offsets[1:])
+    return AllHits(offsets, t[order], tri[order].astype(np.int32),
+                   bu[order].astype(np.float32), bv[order].astype(np.float32), total,
+                   np.zeros(n, bool), 0, np.zeros(n, bool))

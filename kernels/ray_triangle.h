@@ -1,0 +1,487 @@
+/* One ray against boxes and triangles: the ray's constants, the slab test of a
+ * box and the watertight triangle test, shared by the ray queries
+ * (kernels/traverse.cl: closest and any hit; kernels/all_hits.cl: every hit
+ * and the hit counts).
+ *
+ * Compile-time choices (-D), all optional:
+ *   TRIANGLE_TEST=0  watertight test of Woop, Benthin, Wald 2013 (default)
+ *   TRIANGLE_TEST=1  Moller-Trumbore 1997 (faster, leaks through shared edges)
+ *   SLAB_PAD=x       factor on the far distance of a box (Ize 2013)
+ *   NO_FP64=1        leave out the double fallback of the watertight test
+ *   EDGE_RULE=1      a ray through an edge or a vertex hits exactly one of the
+ *                    triangles around it (see ruled_inside); the default
+ *                    accepts it in every one of them
+ */
+#ifndef LBVH_RAY_TRIANGLE_H
+#define LBVH_RAY_TRIANGLE_H
+#include "common.h"
+
+#define TEST_WATERTIGHT 0
+#define TEST_MOLLER 1
+#ifndef TRIANGLE_TEST
+#define TRIANGLE_TEST TEST_WATERTIGHT
+#endif
+#ifndef SLAB_PAD
+/* 1 + 2 gamma(3), gamma(n) = n u / (1 - n u), u = 2^-24, rounded up to float. */
+#define SLAB_PAD 0x1.000008p+0f
+#endif
+
+#define FLAG_OVERFLOW 1    /* a push found the stack full: a subtree was skipped */
+#define FLAG_VISIT_LIMIT 2 /* more nodes visited than the tree has: not a tree */
+#define FLAG_NAN_RAY 4     /* NaN in the ray: not traced (the host API refuses such rays) */
+
+/* The double fallback of the watertight test where the device has doubles
+ * (-DNO_FP64 leaves it out, to test the path of devices without them). */
+#if TRIANGLE_TEST == TEST_WATERTIGHT && defined(cl_khr_fp64) && !defined(NO_FP64)
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#define WATERTIGHT_FP64 1
+#endif
+
+#ifndef EDGE_RULE
+#define EDGE_RULE 0
+#endif
+
+/* EDGE_RULE: the sign of the edge function F = P x Q of the 2D sheared vertices
+ * P, Q (relative to the ray) where F is exactly 0, taken at the ray moved off
+ * its line by (eps, eps^2) for an infinitesimal eps (simulation of simplicity,
+ * Edelsbrunner & Muecke 1990): (P - q) x (Q - q) = F + eps (Py - Qy) +
+ * eps^2 (Qx - Px). Two triangles sharing an edge compute the same F and the
+ * same differences with the opposite sign, so the moved ray lies inside
+ * exactly one of them where the ray crosses the surface (at an edge, or at a
+ * vertex: one triangle of the fan), and in none or both where it only touches
+ * it (a silhouette: the parity of the crossings is kept). 0: the edge is a
+ * point in 2D (such a triangle has det = 0 and is missed anyway). Comparisons
+ * only: the signs of the differences are exact in any precision. */
+#define EDGE_SIGN(F, px, py, qx, qy) \
+    ((F) > 0 ? 1 : (F) < 0 ? -1 : (py) > (qy) ? 1 : (py) < (qy) ? -1 : (qx) > (px) ? 1 : \
+     (qx) < (px) ? -1 : 0)
+inline int same_signs(int a, int b, int c) { return a == b && b == c && a != 0; }
+/* U = c x b, V = a x c, W = b x a (hit_triangle): whether the ray, moved, is
+ * inside; without EDGE_RULE, whether no two of U, V, W have opposite signs. */
+#if EDGE_RULE
+#define RAY_INSIDE(U, V, W, ax, ay, bx, by, cx, cy) \
+    same_signs(EDGE_SIGN(U, cx, cy, bx, by), EDGE_SIGN(V, ax, ay, cx, cy), \
+               EDGE_SIGN(W, bx, by, ax, ay))
+#else
+#define RAY_INSIDE(U, V, W, ax, ay, bx, by, cx, cy) \
+    (!(((U) < 0 || (V) < 0 || (W) < 0) && ((U) > 0 || (V) > 0 || (W) > 0)))
+#endif
+
+/* The hot loop is written with comparisons instead of fmin/fmax/select/vload3:
+ * PoCL calls those builtins out of line, which cost half the time. */
+
+/* max and min keeping m when x is NaN (m is never NaN): fmax/fmin semantics. */
+inline float max_keep(float x, float m) { return x > m ? x : m; }
+inline float min_keep(float x, float m) { return x < m ? x : m; }
+
+typedef struct {
+    float ox, oy, oz, dx, dy, dz;
+    float ix, iy, iz;   /* 1/d: +-inf for +-0, and where 1/d overflows */
+    /* 1/d for the near planes: +-FLT_MAX where 1/d overflows but d != 0 (see
+     * make_ray); +-inf for +-0 as ix, iy, iz. */
+    float jx, jy, jz;
+    /* Offsets (in floats) of the near and far plane of each axis in a node
+     * record: the sign bit of d picks them, so -0.0 counts as negative like
+     * 1/-0 = -inf (Williams et al. 2005; pbrt's dirIsNeg). */
+    int nx, ny, nz, fx, fy, fz;
+    float tmin, tmax;
+    /* Woop 2013, section 3: permutation making kz the dominant axis (kx, ky
+     * swapped when d[kz] < 0 to keep the winding), the origin permuted, and
+     * the shear constants, taken times d_kz (see make_ray): ex, ey, ez are
+     * d_kx, d_ky, d_kz times a power of two, sz = 1 / d_kz. */
+    int kx, ky, kz;
+    float px, py, pz;
+    /* t is measured along d * 2^-texp (see make_ray); 0 for ordinary rays. */
+    int texp;
+    float ex, ey, ez, sz;
+    /* 1: d_kx or d_ky would lose bits in that power of two (shears below
+     * float32's normal range): the triangle test runs in double. */
+    int hard;
+    /* jx.., ix.. and the sign bits of d in the order kx, ky, kz (accept_hit) */
+    float jkx, jky, jkz, ikx, iky, ikz;
+    int nkx, nky, nkz;
+} Ray;
+
+inline float axis(float x, float y, float z, int k) { return k == 0 ? x : (k == 1 ? y : z); }
+
+/* The largest n for which c * 2^-n is exact (c's lowest set bit stays at or
+ * above 2^-149); large for c = 0. */
+inline int exact_shift(float c) {
+    if (c == 0.0f) return 1 << 20;
+    const uint bits = as_uint(c);
+    const uint biased = (bits >> 23) & 0xffu;
+    uint m = bits & 0x7fffffu;
+    if (biased != 0u) m |= 0x800000u;
+    /* c = m * 2^(max(biased, 1) - 150); m & -m is m's lowest set bit */
+    const int lowest = 31 - (int)clz(m & (0u - m));
+    return lowest + (biased != 0u ? (int)biased : 1) - 150 + 149;
+}
+
+/* Fills *ray (a struct passed by pointer, written in place: no value wider
+ * than 32 bytes crosses a function boundary, and nothing is copied). */
+inline void make_ray(Ray *ray, __global const float *o, __global const float *d, float tmin,
+                     float tmax) {
+    ray->ox = o[0]; ray->oy = o[1]; ray->oz = o[2]; ray->tmin = tmin;
+    ray->dx = d[0]; ray->dy = d[1]; ray->dz = d[2]; ray->tmax = tmax;
+    /* A direction far from unit length (tiny or denormal components, or
+     * huge ones) makes 1/d and the shear constants leave float32's range.
+     * Scaling d by a power of two (and t the other way) is exact, so such a
+     * ray is traced as d * 2^-texp and its t scaled back at the end. */
+    ray->texp = 0;
+    /* max_keep: a NaN component is ignored, as by fmax (such a ray is not traced) */
+    const float dmax = max_keep(max_keep(fabs(ray->dx), fabs(ray->dy)), fabs(ray->dz));
+    if (dmax < 0x1p-60f || dmax > 0x1p60f) {
+        /* Only as far as back into [2^-60, 2^60]: the least change of t's
+         * scale, so t itself neither overflows nor underflows. */
+        int e;
+        (void)frexp(dmax, &e);
+        e = e > 0 ? e - 60 : e + 59;
+        ray->texp = e;
+        ray->dx = ldexp(ray->dx, -e); ray->dy = ldexp(ray->dy, -e); ray->dz = ldexp(ray->dz, -e);
+        ray->tmin = ldexp(ray->tmin, e); ray->tmax = ldexp(ray->tmax, e);
+    }
+    ray->ix = 1.0f / ray->dx;
+    ray->iy = 1.0f / ray->dy;
+    ray->iz = 1.0f / ray->dz;
+    /* A component below 2^-128 (after the scaling above, the others may be up
+     * to 2^60) has 1/d = +-inf: the far plane's distance +-inf is still a
+     * bound on the exact one (+inf ahead of the origin; -inf behind it, where
+     * the box is behind the ray as the exact distance says), but +inf for a
+     * near plane ahead of the origin would cull a box the ray enters at a
+     * finite t. The near planes use +-FLT_MAX instead: |FLT_MAX| <= |1/d|, so
+     * the near distance only shrinks, and the entry stays a lower bound. */
+    ray->jx = ray->dx > 0.0f && ray->ix > FLT_MAX ? FLT_MAX : (ray->dx < 0.0f && ray->ix < -FLT_MAX ? -FLT_MAX : ray->ix);
+    ray->jy = ray->dy > 0.0f && ray->iy > FLT_MAX ? FLT_MAX : (ray->dy < 0.0f && ray->iy < -FLT_MAX ? -FLT_MAX : ray->iy);
+    ray->jz = ray->dz > 0.0f && ray->iz > FLT_MAX ? FLT_MAX : (ray->dz < 0.0f && ray->iz < -FLT_MAX ? -FLT_MAX : ray->iz);
+    const int negx = as_int(ray->dx) < 0, negy = as_int(ray->dy) < 0, negz = as_int(ray->dz) < 0;
+    ray->nx = negx ? 4 : 0; ray->fx = 4 - ray->nx;
+    ray->ny = negy ? 5 : 1; ray->fy = 6 - ray->ny;
+    ray->nz = negz ? 6 : 2; ray->fz = 8 - ray->nz;
+    const float ax = fabs(ray->dx), ay = fabs(ray->dy), az = fabs(ray->dz);
+    const int kz = ax >= ay ? (ax >= az ? 0 : 2) : (ay >= az ? 1 : 2);
+    int kx = kz == 2 ? 0 : kz + 1;
+    int ky = kx == 2 ? 0 : kx + 1;
+    const float dz = axis(ray->dx, ray->dy, ray->dz, kz);
+    if (dz < 0.0f) { const int s = kx; kx = ky; ky = s; }
+    ray->kx = kx; ray->ky = ky; ray->kz = kz;
+    ray->px = axis(ray->ox, ray->oy, ray->oz, kx);
+    ray->py = axis(ray->ox, ray->oy, ray->oz, ky);
+    ray->pz = axis(ray->ox, ray->oy, ray->oz, kz);
+    /* Woop 2013 shears by Sx = d_kx / d_kz and Sy = d_ky / d_kz; here the
+     * sheared coordinates are taken times d_kz (times a power of two 2^-e):
+     * x = ez p_kx - ex p_kz, y = ez p_ky - ey p_kz with (ex, ey, ez) =
+     * (d_kx, d_ky, d_kz) 2^-e (hit_triangle). That multiplies every edge
+     * function by ez^2 > 0 (signs, barycentrics and t unchanged) and has no
+     * quotient to round: a vertex exactly on the ray's line (p = s d) gets
+     * exactly (0, 0), since both products are the same real number, and no
+     * shear underflows (d_kx / d_kz below 2^-126 rounded, or flushed to 0,
+     * moved vertices by 2^-150 |p_kz|, and rays along an edge or past a sliver
+     * hit it). e brings |ez| into [0.5, 1), so the coordinates stay within
+     * |p_kx| + |p_kz| as with the quotients, where that is exact: a direction
+     * component that would lose bits (a shear below float32's normal range)
+     * makes the ray `hard`: its triangle tests run in double with d as it is
+     * (without doubles: scaled only as far as is exact). */
+    const float dx_k = axis(ray->dx, ray->dy, ray->dz, kx);
+    const float dy_k = axis(ray->dx, ray->dy, ray->dz, ky);
+    /* |dz| = m 2^e, m in [0.5, 1) (frexp's e, from the bits: dz is normal, in
+     * [2^-60, 2^60] after the scaling above); the powers of two 2^-e and 2^e
+     * are normal floats, the products by them exact unless one underflows,
+     * which the round trip shows (no frexp/ldexp: PoCL calls them out of line). */
+    int e = (int)((as_uint(dz) >> 23) & 0xffu) - 126;
+    float down = as_float((uint)(127 - e) << 23), up = as_float((uint)(127 + e) << 23);
+    ray->hard = 0;
+    if (e > 0 && ((dx_k * down) * up != dx_k || (dy_k * down) * up != dy_k)) {
+        ray->hard = 1;
+#ifdef WATERTIGHT_FP64
+        e = 0;
+#else
+        e = min(e, min(exact_shift(dx_k), exact_shift(dy_k)));
+#endif
+        down = as_float((uint)(127 - e) << 23);
+    }
+    ray->ex = dx_k * down;
+    ray->ey = dy_k * down;
+    ray->ez = dz * down;
+    ray->sz = axis(ray->ix, ray->iy, ray->iz, kz);   /* 1 / dz */
+    ray->jkx = axis(ray->jx, ray->jy, ray->jz, kx);
+    ray->jky = axis(ray->jx, ray->jy, ray->jz, ky);
+    ray->jkz = ray->sz;   /* dz is normal: jz = iz */
+    ray->ikx = axis(ray->ix, ray->iy, ray->iz, kx);
+    ray->iky = axis(ray->ix, ray->iy, ray->iz, ky);
+    ray->ikz = ray->sz;
+    ray->nkx = as_int(dx_k) < 0;
+    ray->nky = as_int(dy_k) < 0;
+    ray->nkz = as_int(dz) < 0;
+}
+
+/* Slab test (Kay-Kajiya) of the box record at `box`
+ * (lower.xyz, word, upper.xyz, word), made robust:
+ * - near and far planes picked by the sign bit of d (-0.0 is negative);
+ * - an origin on a slab plane with a zero direction component gives
+ *   0 * inf = NaN on that axis; max_keep/min_keep ignore it, so that axis does
+ *   not bound the ray, which is right: the origin lies on the closed slab;
+ * - a flat box (lower == upper on an axis) is accepted with entry == exit;
+ * - a direction component whose 1/d overflows: the near planes' distances
+ *   use +-FLT_MAX (jx, jy, jz; see make_ray), the far planes' +-inf;
+ * - the far distance is multiplied by 1 + 2 gamma(3) (Ize 2013, "Robust BVH
+ *   Ray Traversal", JCGT 2(2)), which covers the rounding of the subtraction,
+ *   the reciprocal and the product, so no box containing a hit is lost.
+ * Returns whether [entry, exit] meets [ray.tmin, limit]; *leave is the box's
+ * own exit distance (unpadded), used to order children of equal entry. */
+inline int slab(__global const float *box, const Ray *ray, float limit,
+                float *entry, float *leave) {
+    float t0 = ray->tmin;
+    t0 = max_keep((box[ray->nx] - ray->ox) * ray->jx, t0);
+    t0 = max_keep((box[ray->ny] - ray->oy) * ray->jy, t0);
+    t0 = max_keep((box[ray->nz] - ray->oz) * ray->jz, t0);
+    float t1 = INFINITY;
+    t1 = min_keep((box[ray->fx] - ray->ox) * ray->ix, t1);
+    t1 = min_keep((box[ray->fy] - ray->oy) * ray->iy, t1);
+    t1 = min_keep((box[ray->fz] - ray->oz) * ray->iz, t1);
+    *entry = t0;
+    *leave = t1;
+    return t0 <= min_keep(t1, limit) * SLAB_PAD;
+}
+
+/* Zero-area triangles (repeated or collinear vertices) must never be hit, but
+ * after rounding their projected edge functions can all share a sign. A
+ * triangle is degenerate when |e1 x e2| <= 2^-20 |e1| |e2|, evaluated on the
+ * edges scaled to a largest component of 1 (no overflow or underflow). Called
+ * only for a hit that would be accepted, so it costs nothing on the way. */
+#define DEGENERATE_SINE2 0x1p-40f
+inline float max_abs3(float x, float y, float z) {
+    x = x < 0.0f ? -x : x;
+    y = y < 0.0f ? -y : y;
+    z = z < 0.0f ? -z : z;
+    return x > y ? (x > z ? x : z) : (y > z ? y : z);
+}
+inline int degenerate(__global const float *vertices, int i0, int i1, int i2) {
+    /* Edges of halved vertices: the direction is the same and vertices up to
+     * +-FLT_MAX cannot overflow the difference (inf would make the test NaN). */
+    float ax = vertices[i1] * 0.5f - vertices[i0] * 0.5f;
+    float ay = vertices[i1 + 1] * 0.5f - vertices[i0 + 1] * 0.5f;
+    float az = vertices[i1 + 2] * 0.5f - vertices[i0 + 2] * 0.5f;
+    float bx = vertices[i2] * 0.5f - vertices[i0] * 0.5f;
+    float by = vertices[i2 + 1] * 0.5f - vertices[i0 + 1] * 0.5f;
+    float bz = vertices[i2 + 2] * 0.5f - vertices[i0 + 2] * 0.5f;
+    const float sa = max_abs3(ax, ay, az), sb = max_abs3(bx, by, bz);
+    if (sa == 0.0f || sb == 0.0f) return 1;
+    ax = ax / sa; ay = ay / sa; az = az / sa;
+    bx = bx / sb; by = by / sb; bz = bz / sb;
+    const float nx = ay * bz - az * by, ny = az * bx - ax * bz, nz = ax * by - ay * bx;
+    const float nn = nx * nx + ny * ny + nz * nz;
+    return nn <= DEGENERATE_SINE2 * (ax * ax + ay * ay + az * az) * (bx * bx + by * by + bz * bz);
+}
+
+/* Whether a triangle's hit at *t counts, and its t. The hit must lie in
+ * [tmin, tmax] and before *best; the triangle must not be degenerate; and the
+ * ray must enter the triangle's own box, by the slab test with the slab()
+ * arithmetic, with *t raised to that box's entry where it lies before it.
+ *
+ * The last rule makes the answers independent of the tree. A float32
+ * triangle test can return a hit a little outside the triangle's box (the
+ * sheared coordinates carry u |p - o| of rounding, the slab test's padding is
+ * relative to t along each axis): such a hit was found in a tree where the
+ * triangle shares a leaf whose box the ray enters, and lost in one where it
+ * has a leaf of its own. Every box that holds the triangle holds its box, and
+ * the slab test is monotone in the planes (the same roundings of ordered
+ * inputs), so with t0_b <= t1_b * pad and t0_b <= t every such box passes
+ * slab() for every limit >= t, and the stack never drops it: the triangle
+ * with the closest hit is tested in every tree. A ray that the slab test
+ * takes to miss the triangle's box never tested it in a tree of one
+ * triangle per leaf, so nothing is lost that such a tree would find, and the
+ * raised t is no further from the exact one than the box's entry is (the
+ * exact hit lies in the box). */
+inline int accept_hit(__global const float *vertices, int i0, int i1, int i2, const Ray *ray,
+                      float best, float *t, float own, float ax, float bx, float cx, float ay,
+                      float by, float cy, float az, float bz, float cz) {
+    /* own >= 0: the triangle has a leaf of its own, whose box (the triangle's)
+     * the traversal entered at t = own by this very slab test: nothing to
+     * compute. Else ax .. cz: the vertices minus the origin, axes in the order
+     * kx, ky, kz, as the float test computes them. min(v_i) - o = min(v_i - o) (the rounding of
+     * a subtraction is monotone), so these give slab()'s near and far distances
+     * of the box; taking the axes in another order changes neither max_keep's
+     * nor min_keep's result. */
+    float th = *t;
+    if (!(th >= ray->tmin && th <= ray->tmax && th < best)) return 0;
+    float t0 = own;
+    if (own < 0.0f) {
+        const float lx = min_keep(min_keep(ax, bx), cx), ux = max_keep(max_keep(ax, bx), cx);
+        const float ly = min_keep(min_keep(ay, by), cy), uy = max_keep(max_keep(ay, by), cy);
+        const float lz = min_keep(min_keep(az, bz), cz), uz = max_keep(max_keep(az, bz), cz);
+        t0 = ray->tmin;
+        t0 = max_keep((ray->nkx ? ux : lx) * ray->jkx, t0);
+        t0 = max_keep((ray->nky ? uy : ly) * ray->jky, t0);
+        t0 = max_keep((ray->nkz ? uz : lz) * ray->jkz, t0);
+        float t1 = INFINITY;
+        t1 = min_keep((ray->nkx ? lx : ux) * ray->ikx, t1);
+        t1 = min_keep((ray->nky ? ly : uy) * ray->iky, t1);
+        t1 = min_keep((ray->nkz ? lz : uz) * ray->ikz, t1);
+        if (!(t0 <= t1 * SLAB_PAD)) return 0;
+    }
+    th = max_keep(t0, th);
+    if (!(th <= ray->tmax && th < best)) return 0;
+    if (degenerate(vertices, i0, i1, i2)) return 0;
+    *t = th;
+    return 1;
+}
+
+/* accept_hit for the tests that do not keep the float translation at hand. */
+inline int accept_hit_loading(__global const float *vertices, int i0, int i1, int i2,
+                              const Ray *ray, float best, float *t, float own) {
+    const int kx = ray->kx, ky = ray->ky, kz = ray->kz;
+    return accept_hit(vertices, i0, i1, i2, ray, best, t, own,
+                      vertices[i0 + kx] - ray->px, vertices[i1 + kx] - ray->px,
+                      vertices[i2 + kx] - ray->px, vertices[i0 + ky] - ray->py,
+                      vertices[i1 + ky] - ray->py, vertices[i2 + ky] - ray->py,
+                      vertices[i0 + kz] - ray->pz, vertices[i1 + kz] - ray->pz,
+                      vertices[i2 + kz] - ray->pz);
+}
+
+/* One triangle against the ray; on a hit with tmin <= t <= tmax and t < *best,
+ * updates *best, *bu, *bv and returns 1. Zero-area triangles never hit. */
+#if TRIANGLE_TEST == TEST_WATERTIGHT && defined(WATERTIGHT_FP64)
+/* The watertight test in double from the sheared float coordinates (see below). */
+inline int hit_triangle_fp64(__global const float *vertices, int i0, int i1, int i2,
+                             const Ray *ray, float ax, float ay, float az, float bx, float by,
+                             float bz, float cx, float cy, float cz, float own,
+                             float *best, float *bu, float *bv) {
+    const double U = (double)cx * (double)by - (double)cy * (double)bx;
+    const double V = (double)ax * (double)cy - (double)ay * (double)cx;
+    const double W = (double)bx * (double)ay - (double)by * (double)ax;
+    if (!RAY_INSIDE(U, V, W, ax, ay, bx, by, cx, cy)) return 0;
+    const double det = U + V + W;
+    if (det == 0.0) return 0;
+    const double sz = (double)ray->sz;
+    const double T = U * (sz * (double)az) + V * (sz * (double)bz) + W * (sz * (double)cz);
+    float t = (float)(T / det);
+    if (!accept_hit_loading(vertices, i0, i1, i2, ray, *best, &t, own)) return 0;
+    *best = t;
+    *bu = (float)(V / det);
+    *bv = (float)(W / det);
+    return 1;
+}
+
+/* The watertight test of a `hard` ray (make_ray: a shear below float32's
+ * normal range), all in double, with d as it is (ez = d_kz): the same
+ * equations as hit_triangle, in a precision where nothing of float32 inputs
+ * can overflow or underflow (|p| < 2^129, 2^-149 <= |d| < 2^61: products
+ * stay within 2^-300 .. 2^400). A vertex exactly on the ray's line gets
+ * exactly (0, 0) here too. The choice is the ray's, so every triangle of the
+ * ray takes the same path and shared edges stay watertight. */
+inline int hit_triangle_hard(__global const float *vertices, int i0, int i1, int i2,
+                             const Ray *ray, float own, float *best, float *bu, float *bv) {
+    const int kx = ray->kx, ky = ray->ky, kz = ray->kz;
+    const double px = ray->px, py = ray->py, pz = ray->pz;
+    const double ex = ray->ex, ey = ray->ey, ez = ray->ez;
+    const double az = (double)vertices[i0 + kz] - pz;
+    const double bz = (double)vertices[i1 + kz] - pz;
+    const double cz = (double)vertices[i2 + kz] - pz;
+    const double ax = ((double)vertices[i0 + kx] - px) * ez - az * ex;
+    const double ay = ((double)vertices[i0 + ky] - py) * ez - az * ey;
+    const double bx = ((double)vertices[i1 + kx] - px) * ez - bz * ex;
+    const double by = ((double)vertices[i1 + ky] - py) * ez - bz * ey;
+    const double cx = ((double)vertices[i2 + kx] - px) * ez - cz * ex;
+    const double cy = ((double)vertices[i2 + ky] - py) * ez - cz * ey;
+    const double U = cx * by - cy * bx;
+    const double V = ax * cy - ay * cx;
+    const double W = bx * ay - by * ax;
+    if (!RAY_INSIDE(U, V, W, ax, ay, bx, by, cx, cy)) return 0;
+    const double det = U + V + W;
+    if (det == 0.0) return 0;
+    /* t = (U az + V bz + W cz) / (det d_kz) */
+    float t = (float)((U * az + V * bz + W * cz) / (det * ez));
+    if (!accept_hit_loading(vertices, i0, i1, i2, ray, *best, &t, own)) return 0;
+    *best = t;
+    *bu = (float)(V / det);
+    *bv = (float)(W / det);
+    return 1;
+}
+#endif
+
+#if TRIANGLE_TEST == TEST_WATERTIGHT
+/* Woop, Benthin, Wald 2013, "Watertight Ray/Triangle Intersection", JCGT 2(1):
+ * translate to the origin, permute and shear so that the ray is +z, then 2D
+ * edge functions. An edge shared by two triangles is evaluated from the same
+ * two vertices with the same operations, so a ray cannot slip between them.
+ * The shear is taken times d_kz (make_ray): x = ez p_kx - ex p_kz instead of
+ * p_kx - Sx p_kz (Woop's equations times ez, exact on the ray's line). */
+inline int hit_triangle(__global const float *vertices, int i0, int i1, int i2, const Ray *ray,
+                        float own, float *best, float *bu, float *bv) {
+#ifdef WATERTIGHT_FP64
+    if (ray->hard) return hit_triangle_hard(vertices, i0, i1, i2, ray, own, best, bu, bv);
+#endif
+    const int kx = ray->kx, ky = ray->ky, kz = ray->kz;
+    const float ex = ray->ex, ey = ray->ey, ez = ray->ez;
+    const float az = vertices[i0 + kz] - ray->pz;
+    const float bz = vertices[i1 + kz] - ray->pz;
+    const float cz = vertices[i2 + kz] - ray->pz;
+    const float pax = vertices[i0 + kx] - ray->px, pay = vertices[i0 + ky] - ray->py;
+    const float pbx = vertices[i1 + kx] - ray->px, pby = vertices[i1 + ky] - ray->py;
+    const float pcx = vertices[i2 + kx] - ray->px, pcy = vertices[i2 + ky] - ray->py;
+    const float ax = pax * ez - az * ex;
+    const float ay = pay * ez - az * ey;
+    const float bx = pbx * ez - bz * ex;
+    const float by = pby * ez - bz * ey;
+    const float cx = pcx * ez - cz * ex;
+    const float cy = pcy * ez - cz * ey;
+    const float U = cx * by - cy * bx;
+    const float V = ax * cy - ay * cx;
+    const float W = bx * ay - by * ax;
+    const float det = U + V + W;
+    const float T = U * (ray->sz * az) + V * (ray->sz * bz) + W * (ray->sz * cz);
+#ifdef WATERTIGHT_FP64
+    /* Section 3.3: an edge function that rounds to zero is recomputed in
+     * double, where products of floats are exact and its sign is right. The
+     * same is done when a float32 product leaves float32's normal range
+     * (triangles ~1e19 or ~1e-19 in size around the ray: overflow, or
+     * denormals that lose digits): then the whole test runs in double and
+     * only t, u, v return to float. */
+    if (fabs(U) < FLT_MIN || fabs(V) < FLT_MIN || fabs(W) < FLT_MIN ||
+        !(fabs(det) >= FLT_MIN && fabs(det) <= FLT_MAX) ||
+        !(fabs(T) >= FLT_MIN && fabs(T) <= FLT_MAX))
+        return hit_triangle_fp64(vertices, i0, i1, i2, ray, ax, ay, az, bx, by, bz, cx, cy, cz,
+                                 own, best, bu, bv);
+#endif
+    if (!RAY_INSIDE(U, V, W, ax, ay, bx, by, cx, cy)) return 0;
+    if (det == 0.0f) return 0;
+    float t = T / det;
+    if (!accept_hit(vertices, i0, i1, i2, ray, *best, &t, own, pax, pbx, pcx, pay, pby, pcy, az,
+                    bz, cz))
+        return 0;
+    *best = t;
+    *bu = V / det;
+    *bv = W / det;
+    return 1;
+}
+#else
+/* Moller, Trumbore 1997, "Fast, Minimum Storage Ray/Triangle Intersection". */
+inline int hit_triangle(__global const float *vertices, int i0, int i1, int i2, const Ray *ray,
+                        float own, float *best, float *bu, float *bv) {
+    const float p0x = vertices[i0], p0y = vertices[i0 + 1], p0z = vertices[i0 + 2];
+    const float e1x = vertices[i1] - p0x, e1y = vertices[i1 + 1] - p0y, e1z = vertices[i1 + 2] - p0z;
+    const float e2x = vertices[i2] - p0x, e2y = vertices[i2 + 1] - p0y, e2z = vertices[i2 + 2] - p0z;
+    const float qx = ray->dy * e2z - ray->dz * e2y;   /* P = d x e2 */
+    const float qy = ray->dz * e2x - ray->dx * e2z;
+    const float qz = ray->dx * e2y - ray->dy * e2x;
+    const float det = e1x * qx + e1y * qy + e1z * qz;
+    if (det == 0.0f) return 0;
+    const float inv = 1.0f / det;
+    const float tx = ray->ox - p0x, ty = ray->oy - p0y, tz = ray->oz - p0z;
+    const float u = (tx * qx + ty * qy + tz * qz) * inv;
+    if (!(u >= 0.0f && u <= 1.0f)) return 0;
+    const float rx = ty * e1z - tz * e1y;             /* Q = T x e1 */
+    const float ry = tz * e1x - tx * e1z;
+    const float rz = tx * e1y - ty * e1x;
+    const float v = (ray->dx * rx + ray->dy * ry + ray->dz * rz) * inv;
+    if (!(v >= 0.0f && u + v <= 1.0f)) return 0;
+    float t = (e2x * rx + e2y * ry + e2z * rz) * inv;
+    if (!accept_hit_loading(vertices, i0, i1, i2, ray, *best, &t, own)) return 0;
+    *best = t;
+    *bu = u;
+    *bv = v;
+    return 1;
+}
+#endif
+
+#endif

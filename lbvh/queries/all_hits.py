@@ -1,0 +1,273 @@
+"""Every hit along each ray, and the hit counts (kernels/all_hits.cl).
+
+``bvh.count_hits(origins, directions)`` answers how many times each ray
+crosses the mesh in ``[tmin, tmax]``; ``bvh.all_hits(origins, directions,
+max_hits=...)`` answers every hit, nearest first, as flat arrays with per-ray
+offsets (:class:`AllHits`). Rays are checked as for
+:func:`lbvh.queries.traverse.intersect` (:mod:`lbvh.queries.rays`).
+
+Each hit is found by the same watertight test as the closest hit (Woop,
+Benthin & Wald 2013, kernels/ray_triangle.h), with one rule more: a ray
+through an edge or a vertex that several triangles share hits exactly one of
+them where it crosses the surface, so the crossing counts once (the tie is
+broken by moving the ray off the edge by an infinitesimal amount, a
+simulation of simplicity; a ray that only touches the surface at a
+silhouette edge counts it 0 or 2 times, which keeps the parity). The hits do
+not depend on the tree, and their ``t, u, v`` are those the closest-hit
+query reports for the same triangle.
+
+The twin is :func:`lbvh.verification.oracle.all_hits_brute`: the same test in
+numpy over every triangle, equal to the kernel's hits bit for bit
+(``dtype=np.float32``), and the float64 oracle, which differs from it only
+for rays within rounding of an edge.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pyopencl as cl
+
+from .. import device as dev
+from .rays import InvalidRays, Rays, check_invalid_rays, check_rays, is_device_array
+from .target import QueryTarget
+from .traverse import FLAG_OVERFLOW, FLAG_VISIT_LIMIT, slab_pad, stack_bucket
+
+KERNEL_FILE = "all_hits.cl"
+
+__all__ = ["AllHits", "count_hits", "all_hits", "DEFAULT_BATCH"]
+
+#: Rays per kernel launch unless ``batch_size`` says otherwise.
+DEFAULT_BATCH = 1 << 18
+
+_WORK_GROUP = 64
+
+
+@dataclass
+class AllHits:
+    """Every hit of each ray, nearest first, as flat arrays.
+
+    The hits of ray ``i`` are ``t[offsets[i]:offsets[i + 1]]`` (and the same slice
+    of ``prim``, ``u``, ``v``), in increasing ``t`` (equal ``t``: increasing ``prim``).
+
+    Attributes:
+        offsets: ``int64 (N + 1,)``.
+        t: ``float32 (M,)`` distance along the ray's direction.
+        prim: ``int32 (M,)`` triangle index in the caller's numbering.
+        u, v: ``float32 (M,)`` barycentrics: the hit point is
+            ``(1-u-v)*p0 + u*p1 + v*p2`` with ``p0, p1, p2 = vertices[faces[prim]]``.
+        total: ``int64 (N,)`` hits of each ray in ``[tmin, tmax]``, before ``max_hits``
+            (what :func:`count_hits` answers).
+        overflow: ``bool (N,)`` the traversal's stack overflowed (the ray may have
+            missed hits); ``overflow_count`` how many.
+        invalid: ``bool (N,)`` the ray was bad and not traced (``invalid_rays="miss"``).
+    """
+    offsets: np.ndarray
+    t: np.ndarray
+    prim: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    total: np.ndarray
+    overflow: np.ndarray
+    overflow_count: int
+    invalid: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    @property
+    def counts(self) -> np.ndarray:
+        """``int64 (N,)``: hits kept per ray (``total`` capped at ``max_hits``)."""
+        return np.diff(self.offsets)
+
+    @property
+    def truncated(self) -> np.ndarray:
+        """``bool (N,)``: the ray had more than ``max_hits`` hits (the nearest were kept)."""
+        return self.total > self.counts
+
+    @property
+    def ray(self) -> np.ndarray:
+        """``int64 (M,)``: the ray of each hit."""
+        return np.repeat(np.arange(len(self), dtype=np.int64), self.counts)
+
+    def of(self, i: int) -> slice:
+        """The slice of ray ``i``'s hits in ``t``, ``prim``, ``u`` and ``v``."""
+        return slice(int(self.offsets[i]), int(self.offsets[i + 1]))
+
+    def locations(self, origins: Any, directions: Any) -> np.ndarray:
+        """The hit points ``origin + t * direction`` of every hit, ``(M, 3)``, float64
+        when either array is float64, else float32 (as the rays were traced)."""
+        o, d = np.asarray(origins), np.asarray(directions)
+        for name, a in (("origins", o), ("directions", d)):
+            if a.shape != (len(self), 3):
+                raise ValueError(f"{name}: shape {a.shape}, expected ({len(self)}, 3): the rays "
+                                 "of this result")
+        dtype = np.float64 if np.float64 in (o.dtype, d.dtype) else np.float32
+        ray = self.ray
+        return (o[ray].astype(dtype) + d[ray].astype(dtype) * self.t[:, None].astype(dtype))
+
+
+def _check_max_hits(max_hits: Any) -> int | None:
+    if max_hits is None:
+        return None
+    if isinstance(max_hits, bool) or not isinstance(max_hits, (int, np.integer)) or max_hits < 0:
+        raise ValueError(f"max_hits: {max_hits!r}; expected None or an integer >= 0")
+    return int(max_hits)
+
+
+def _check_batch(batch_size: Any) -> int:
+    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
+            or batch_size < 1:
+        raise ValueError(f"batch_size: {batch_size!r}; expected a positive integer")
+    return int(batch_size)
+
+
+def _rays(origins: Any, directions: Any, tmin: Any, tmax: Any, invalid_rays: str) -> Rays:
+    check_invalid_rays(invalid_rays)
+    # rays in pyopencl arrays are read back: this query's answer is read back anyway
+    origins, directions, tmin, tmax = (x.get() if is_device_array(x) else x
+                                       for x in (origins, directions, tmin, tmax))
+    return check_rays(origins, directions, tmin, tmax, invalid_rays=invalid_rays)
+
+
+@dev.serialised
+def count_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
+               tmax: Any = np.inf, *, batch_size: int = DEFAULT_BATCH,
+               invalid_rays: InvalidRays = "raise") -> np.ndarray:
+    """How many times each ray crosses the mesh in ``[tmin, tmax]``.
+
+    Args:
+        target: an :class:`lbvh.BVH`.
+        origins, directions, tmin, tmax, invalid_rays: as for
+            :func:`lbvh.queries.traverse.intersect`; an invalid ray with
+            ``invalid_rays="miss"`` counts 0.
+        batch_size: rays per kernel launch.
+
+    Returns:
+        ``int32 (N,)``.
+
+    Raises:
+        ValueError: a bad ray (named) or option.
+        RuntimeError: the traversal stack overflowed (a tree deeper than 768 levels).
+    """
+    batch = _check_batch(batch_size)
+    rays = _rays(origins, directions, tmin, tmax, invalid_rays)
+    counts, flags = _run(target, rays, batch, None)[:2]
+    _raise_on_overflow(flags, "count_hits")
+    return counts.astype(np.int32)
+
+
+@dev.serialised
+def all_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
+             tmax: Any = np.inf, *, max_hits: int | None = None,
+             batch_size: int = DEFAULT_BATCH, invalid_rays: InvalidRays = "raise") -> AllHits:
+    """Every hit of each ray in ``[tmin, tmax]``, nearest first.
+
+    Args:
+        target: an :class:`lbvh.BVH`.
+        origins, directions, tmin, tmax, invalid_rays: as for
+            :func:`lbvh.queries.traverse.intersect`; an invalid ray with
+            ``invalid_rays="miss"`` has no hits.
+        max_hits: keep at most this many hits per ray, the nearest (``None``: all);
+            ``AllHits.total`` still counts all of them.
+        batch_size: rays per kernel launch.
+
+    Returns:
+        :class:`AllHits`.
+
+    Raises:
+        ValueError: a bad ray (named) or option.
+        lbvh.DeviceError: a batch's hits would not fit the device's largest buffer
+            (a smaller ``batch_size`` or a ``max_hits`` makes them fit).
+    """
+    cap = _check_max_hits(max_hits)
+    batch = _check_batch(batch_size)
+    rays = _rays(origins, directions, tmin, tmax, invalid_rays)
+    total, flags, kept = _run(target, rays, batch, cap if cap is not None else -1)
+    counts = np.minimum(total, cap) if cap is not None else total
+    offsets = np.zeros(len(rays) + 1, np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    t, prim, u, v = kept
+    # nearest first, ties by triangle index: sort by (ray, t, prim)
+    ray = np.repeat(np.arange(len(rays)), counts)
+    order = np.lexsort((prim, t, ray))
+    overflow = (flags & (FLAG_OVERFLOW | FLAG_VISIT_LIMIT)) != 0
+    invalid = rays.invalid if rays.invalid is not None else np.zeros(len(rays), bool)
+    return AllHits(offsets, t[order], prim[order], u[order], v[order], total.astype(np.int64),
+                   overflow, int(overflow.sum()), invalid)
+
+
+def _raise_on_overflow(flags: np.ndarray, name: str) -> None:
+    bad = (flags & (FLAG_OVERFLOW | FLAG_VISIT_LIMIT)) != 0
+    if bad.any():
+        raise RuntimeError(f"{name}: the traversal stack overflowed for {int(bad.sum())} rays "
+                           f"(first: ray {int(np.flatnonzero(bad)[0])}); the tree is deeper than "
+                           "the kernel's stack")
+
+
+def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None):
+    """Count (``cap`` None) or collect (``cap`` -1: all, else at most ``cap`` per ray)
+    the hits of every good ray, batch by batch. Returns ``(total, flags)`` and, when
+    collecting, ``(t, prim, u, v)`` in ray order (unsorted within a ray)."""
+    n = len(rays)
+    total = np.zeros(n, np.int64)
+    flags = np.zeros(n, np.int32)
+    pieces: list[tuple[np.ndarray, ...]] = []
+    good = np.arange(n) if rays.invalid is None else np.flatnonzero(~rays.invalid)
+    if rays.invalid is not None:
+        rays = rays.take(good)
+    ctx, tree, mem = target.ctx, target.tree, target.ctx.memory
+    stack = stack_bucket(target.traversal_depth() + 1)
+    base = {"STACK_SIZE": stack, "SLAB_PAD": slab_pad(ctx)}
+    lo, hi, stride = rays.kernel_intervals()
+    m_all = len(rays)
+    for start in range(0, m_all, batch):
+        stop = min(m_all, start + batch)
+        m = stop - start
+        part = Rays(rays.origins[start:stop], rays.directions[start:stop],
+                    lo[start:stop] if stride else lo, hi[start:stop] if stride else hi)
+        bufs = {"o": mem.upload(part.origins), "d": mem.upload(part.directions),
+                "lo": mem.upload(np.ascontiguousarray(part.tmin)),
+                "hi": mem.upload(np.ascontiguousarray(part.tmax)),
+                "counts": mem.alloc(4 * m), "flags": mem.alloc(4 * m),
+                "offsets": mem.alloc(8 * (m + 1))}
+        out: list[cl.Buffer] = []
+        launch = dev.Launch(m, 1, -(-m // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
+        args = (tree.nodes, tree.prim_order, target.mesh.vertices_buf, target.slot_faces(),
+                tree.root, tree.num_nodes, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"],
+                stride, m, bufs["offsets"])
+        try:
+            dev.run(ctx, KERNEL_FILE, "all_hits", launch, *args, bufs["counts"], bufs["flags"],
+                    bufs["flags"], bufs["flags"], bufs["flags"], bufs["flags"],
+                    defines={**base, "COUNT": 1})
+            counts = dev.from_device(ctx, bufs["counts"], np.int32, (m,))
+            total[good[start:stop]] = counts
+            if cap is not None:
+                keep = counts if cap < 0 else np.minimum(counts, cap)
+                offsets = np.zeros(m + 1, np.int64)
+                np.cumsum(keep, out=offsets[1:])
+                size = int(offsets[-1])
+                cols = (np.empty(size, np.float32), np.empty(size, np.int32),
+                        np.empty(size, np.float32), np.empty(size, np.float32))
+                if size:
+                    out = [mem.alloc(4 * size) for _ in range(4)]
+                    cl.enqueue_copy(ctx.queue, bufs["offsets"], offsets)
+                    dev.run(ctx, KERNEL_FILE, "all_hits", launch, *args, bufs["counts"],
+                            out[0], out[2], out[3], out[1], bufs["flags"],
+                            defines={**base, "COUNT": 0})
+                    for col, buf in zip(cols, out):
+                        cl.enqueue_copy(ctx.queue, col, buf, is_blocking=False)
+                    ctx.queue.finish()
+                pieces.append(cols)
+            flags[good[start:stop]] = dev.from_device(ctx, bufs["flags"], np.int32, (m,))
+        finally:
+            mem.free(*out, *bufs.values())
+    if cap is None:
+        return total, flags, None
+    if pieces:
+        kept = tuple(np.concatenate(c) for c in zip(*pieces))
+    else:
+        kept = (np.zeros(0, np.float32), np.zeros(0, np.int32), np.zeros(0, np.float32),
+                np.zeros(0, np.float32))
+    return total, flags, kept

@@ -1,0 +1,167 @@
+"""Every hit and the hit counts (kernels/all_hits.cl) against their numpy twin and the
+float64 oracle (lbvh.verification.oracle.all_hits_brute): the same hits bit for bit, a
+crossing through a shared edge or vertex counted once, the same answer from every tree."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import lbvh
+from lbvh.verification import hard_cases, meshes
+from lbvh.verification.oracle import all_hits_brute
+
+
+def dense_soup(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Random triangles large enough that a ray crosses several."""
+    return meshes.soup(n, seed, 0.15, spread="normal")
+
+
+def same(got, want) -> None:
+    """Bit for bit: the same hits of every ray, in the same order."""
+    assert np.array_equal(got.offsets, want.offsets)
+    assert np.array_equal(got.total, want.total)
+    assert np.array_equal(got.prim, want.prim)
+    for name in ("t", "u", "v"):
+        assert np.array_equal(getattr(got, name).view(np.uint32),
+                              getattr(want, name).view(np.uint32)), name
+    assert got.overflow_count == 0
+
+
+def random_rays(v: np.ndarray, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    lo, hi = v.min(0), v.max(0)
+    o = lo + (hi - lo) * rng.uniform(-0.5, 1.5, (n, 3))
+    target = lo + (hi - lo) * rng.uniform(0, 1, (n, 3))
+    return o.astype(np.float32), (target - o).astype(np.float32)
+
+
+@pytest.mark.parametrize("kind", ["lbvh", "lbvh+collapse", "sah", "treelets"])
+def test_every_tree_gives_the_twins_hits(kind):
+    v, f = dense_soup(1500, 5)
+    bvh = {"lbvh": lambda: lbvh.build(v, f), "lbvh+collapse": lambda: lbvh.build(v, f, collapse=True),
+           "sah": lambda: lbvh.build(v, f, builder="sah"),
+           "treelets": lambda: lbvh.build(v, f, treelet_rounds=2)}[kind]()
+    o, d = random_rays(v, 600, 2)
+    got = bvh.all_hits(o, d)
+    same(got, all_hits_brute(v, f, o, d, dtype=np.float32))
+    assert got.counts.max() >= 3 and (got.counts == 0).any()   # deep rays and misses
+    assert np.array_equal(bvh.count_hits(o, d), got.total)
+    # the float64 oracle finds the same triangles (no ray of these passes within
+    # rounding of an edge)
+    exact = all_hits_brute(v, f, o, d, dtype=np.float64)
+    assert np.array_equal(got.offsets, exact.offsets) and np.array_equal(got.prim, exact.prim)
+
+
+@pytest.mark.parametrize("name", ["closed_cube_vertices_edges", "closed_sphere_vertices_edges",
+                                  "rays_on_surface", "rays_in_face_planes",
+                                  "axis_rays_signed_zeros", "scaled_directions",
+                                  "huge_coordinates", "tiny_coordinates", "slivers",
+                                  "zero_area_mix", "identical_triangles"])
+def test_hard_cases_match_the_twin(name):
+    case = hard_cases.make(name)
+    bvh = lbvh.build(case.vertices, case.faces)
+    got = bvh.all_hits(case.origins, case.directions, case.tmin, case.tmax)
+    same(got, all_hits_brute(case.vertices, case.faces, case.origins, case.directions,
+                             case.tmin, case.tmax, dtype=np.float32))
+
+
+@pytest.mark.parametrize("name", ["closed_cube_vertices_edges", "closed_sphere_vertices_edges"])
+def test_rays_through_vertices_and_edges_cross_a_closed_mesh_once_each_way(name):
+    """The cases aim rays exactly at the vertices and along-the-edge points of closed
+    meshes, from outside (two crossings) and from the centre (one): without the edge
+    rule such a ray would hit every triangle around the vertex."""
+    case = hard_cases.make(name)
+    bvh = lbvh.build(case.vertices, case.faces)
+    counts = bvh.count_hits(case.origins, case.directions, case.tmin, case.tmax)
+    assert set(np.unique(counts)) <= {1, 2}
+    exact = all_hits_brute(case.vertices, case.faces, case.origins, case.directions,
+                           case.tmin, case.tmax, dtype=np.float64)
+    assert np.array_equal(counts, exact.total)
+
+
+def test_a_crossing_at_a_grid_vertex_or_edge_counts_once():
+    """A flat grid (6 triangles meet at a vertex): rays through every vertex and every
+    edge's midpoint, straight and slanted, cross it once."""
+    v, f = meshes.grid_mesh(12, 9)
+    bvh = lbvh.build(v, f)
+    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    points = np.concatenate([v, (v[edges[:, 0]] + v[edges[:, 1]]) * np.float32(0.5)])
+    normal = np.cross(v[f[0, 1]] - v[f[0, 0]], v[f[0, 2]] - v[f[0, 0]])
+    normal = (normal / np.linalg.norm(normal)).astype(np.float32)
+    rng = np.random.default_rng(4)
+    for tilt in (0.0, 0.3, 1.7):
+        d = normal + np.float32(tilt) * rng.normal(size=(len(points), 3)).astype(np.float32)
+        d = d.astype(np.float32)
+        o = (points - 5 * d).astype(np.float32)
+        lo, hi = v.min(0), v.max(0)
+        inside = ((points > lo) & (points < hi)).sum(axis=1) >= 2   # not on the border
+        counts = bvh.count_hits(o, d)
+        assert (counts[inside] == 1).all(), (tilt, np.bincount(counts[inside]))
+        same(bvh.all_hits(o, d), all_hits_brute(v, f, o, d, dtype=np.float32))
+
+
+def test_parity_tells_inside_from_outside_on_a_closed_mesh():
+    v, f = meshes.cube_sphere(10)
+    bvh = lbvh.build(v, f)
+    rng = np.random.default_rng(7)
+    points = rng.uniform(-1.5, 1.5, (3000, 3)).astype(np.float32)
+    r = np.linalg.norm(points.astype(np.float64), axis=1)
+    clear = np.abs(r - 1) > 0.05          # cube_sphere: the sphere of radius 1, faceted
+    # through vertices too: rays from each point aimed at a mesh vertex
+    target = v[rng.integers(0, len(v), len(points))]
+    for d in (rng.normal(size=(len(points), 3)).astype(np.float32), target - points):
+        counts = bvh.count_hits(points, d.astype(np.float32))
+        assert np.array_equal(counts[clear] % 2 == 1, r[clear] < 1)
+
+
+def test_max_hits_keeps_the_nearest():
+    v, f = dense_soup(1500, 6)
+    bvh = lbvh.build(v, f)
+    o, d = random_rays(v, 500, 3)
+    full = bvh.all_hits(o, d)
+    for k in (0, 1, 2, 5):
+        got = bvh.all_hits(o, d, max_hits=k)
+        assert np.array_equal(got.total, full.total)
+        assert np.array_equal(got.counts, np.minimum(full.counts, k))
+        assert np.array_equal(got.truncated, full.counts > k)
+        for i in range(len(o)):
+            keep = full.of(i)
+            keep = slice(keep.start, keep.start + min(k, keep.stop - keep.start))
+            assert np.array_equal(got.prim[got.of(i)], full.prim[keep])
+            assert np.array_equal(got.t[got.of(i)], full.t[keep])
+    # the nearest hit is the closest hit query's
+    near = bvh.all_hits(o, d, max_hits=1)
+    hits = bvh.intersect(o, d)
+    assert np.array_equal(near.t, hits.t[hits.mask])
+    assert np.array_equal(near.ray, np.flatnonzero(hits.mask))
+
+
+def test_intervals_batches_and_bad_rays():
+    v, f = dense_soup(800, 8)
+    bvh = lbvh.build(v, f)
+    o, d = random_rays(v, 300, 4)
+    rng = np.random.default_rng(5)
+    tmin = rng.uniform(0, 0.5, len(o)).astype(np.float32)
+    tmax = (tmin + rng.uniform(0, 1, len(o))).astype(np.float32)
+    got = bvh.all_hits(o, d, tmin, tmax, batch_size=37)
+    same(got, all_hits_brute(v, f, o, d, tmin, tmax, dtype=np.float32))
+    assert ((got.t >= tmin[got.ray]) & (got.t <= tmax[got.ray])).all()
+    assert np.array_equal(bvh.count_hits(o, d, tmin, tmax, batch_size=64), got.total)
+    # locations lie on the hit triangles
+    points = got.locations(o.astype(np.float64), d)
+    p = v[f[got.prim]].astype(np.float64)
+    bary = (1 - got.u - got.v)[:, None] * p[:, 0] + got.u[:, None] * p[:, 1] + got.v[:, None] * p[:, 2]
+    assert np.abs(points - bary).max() < 1e-4 * np.abs(v).max()
+    # a bad ray is refused, or counted as no hits with invalid_rays="miss"
+    bad = d.copy()
+    bad[3] = np.nan
+    with pytest.raises(ValueError, match="ray 3"):
+        bvh.count_hits(o, bad)
+    counts = bvh.count_hits(o, bad, invalid_rays="miss")
+    assert counts[3] == 0 and np.array_equal(np.delete(counts, 3),
+                                             np.delete(bvh.count_hits(o, d), 3))
+    miss = bvh.all_hits(o, bad, invalid_rays="miss")
+    assert miss.invalid[3] and miss.counts[3] == 0
+    with pytest.raises(ValueError, match="max_hits"):
+        bvh.all_hits(o, d, max_hits=-1)
+    assert len(bvh.all_hits(o[:0], d[:0])) == 0 and len(bvh.count_hits(o[:0], d[:0])) == 0
