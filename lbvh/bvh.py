@@ -23,7 +23,7 @@ from . import device as dev
 from .builders.refit import refit_boxes
 from .layout import NODE_DTYPE, children_of, is_leaf, node_depths, parents_of, prim_range_of
 from .mesh import as_faces, as_vertices
-from .queries import all_hits as hits_along, closest, overlap, traverse
+from .queries import all_hits as hits_along, closest, overlap, traverse, winding
 from .queries.all_hits import AllHits
 from .queries.closest import Closest
 from .queries.overlap import Overlaps
@@ -65,6 +65,7 @@ class BVH:
         self._host: dict[str, np.ndarray] = {}
         self._wide: Wide | None = None
         self._slot_faces: cl.Buffer | None = None
+        self._moments: cl.Buffer | None = None
         self._depth: int | None = None
         # Everything handed back when this BVH is dropped: the tree's buffers and
         # the caches' (appended as they are made).
@@ -203,6 +204,18 @@ class BVH:
             self._owned.append(self._slot_faces)
         return self._slot_faces
 
+    @dev.serialised
+    def winding_moments(self) -> cl.Buffer:
+        """``float32 (num_nodes, 16)`` on the device: the nodes' moments of the winding
+        number query (:func:`lbvh.queries.winding.node_moments`), made on first use;
+        a refit renews them."""
+        if self._moments is None:
+            moments = winding.node_moments(self.nodes, self.prim_order, self.root,
+                                           self.vertices, self.faces)
+            self._moments = self.ctx.memory.upload(moments)
+            self._owned.append(self._moments)
+        return self._moments
+
     def traversal_depth(self) -> int:
         """The tree's depth, 0 for a root leaf (its topology never changes)."""
         if self._depth is None:
@@ -228,6 +241,10 @@ class BVH:
                     tree.parent, tree.num_prims, tree.num_nodes, leaf_list)
         self.mesh = mesh
         self._host.clear()
+        moments, self._moments = self._moments, None
+        if moments is not None:   # of the old boxes: made again on the next query
+            self._owned[:] = [b for b in self._owned if b is not moments]
+            self.ctx.memory.free(moments)
         if self._wide is not None:
             write_records(self.tree, self._wide)   # the traversal's copies of the boxes
         return self
@@ -307,6 +324,22 @@ class BVH:
         distance, point, triangle and barycentrics; see
         :func:`lbvh.queries.closest.closest_points`."""
         return closest.closest_points(self, points, max_distance, batch_size=batch_size)
+
+    # -- inside and signed distance (lbvh/queries/winding.py, kernels/winding.cl) ----
+    def winding_numbers(self, points: Any, *, beta: float = winding.DEFAULT_BETA) -> np.ndarray:
+        """``float32 (N,)``: the generalised winding number of each point (1 inside a
+        closed mesh, 0 outside); see :func:`lbvh.queries.winding.winding_numbers`."""
+        return winding.winding_numbers(self, points, beta=beta)
+
+    def contains(self, points: Any, *, beta: float = winding.DEFAULT_BETA) -> np.ndarray:
+        """``bool (N,)``: whether each point is inside the mesh (winding number > 1/2);
+        see :mod:`lbvh.queries.winding` for what it answers on an open mesh."""
+        return winding.contains(self, points, beta=beta)
+
+    def signed_distance(self, points: Any, *, beta: float = winding.DEFAULT_BETA) -> np.ndarray:
+        """``float32 (N,)``: the distance to the mesh, negative inside (Open3D's and
+        warp's convention); see :func:`lbvh.queries.winding.signed_distance`."""
+        return winding.signed_distance(self, points, beta=beta)
 
     def overlapping(self, lower: Any, upper: Any) -> Overlaps:
         """The triangles whose boxes overlap each query box ``[lower[i], upper[i]]``, as

@@ -335,6 +335,16 @@ ROWS: list[Row] = [
         lambda e: e.bvh.closest_points(e.o, max_distance=float("nan")), ValueError,
         "max_distance: nan"),
     Row("bvh.closest_points", "no points", lambda e: e.bvh.closest_points(np.zeros((0, 3))), None),
+    # bvh.winding_numbers, bvh.contains, bvh.signed_distance
+    Row("bvh.contains", "NaN point", lambda e: e.bvh.contains(_rays(e, o=(2, 1, np.nan))[0]),
+        ValueError, "point 2 has a NaN"),
+    Row("bvh.contains", "beta=0.5", lambda e: e.bvh.contains(e.o, beta=0.5), ValueError,
+        "beta: 0.5"),
+    Row("bvh.winding_numbers", "points of shape (N, 2)", lambda e: e.bvh.winding_numbers(e.o[:, :2]),
+        ValueError, "expected (N, 3)"),
+    Row("bvh.signed_distance", "infinite point", lambda e: e.bvh.signed_distance(
+        _rays(e, o=(5, 0, np.inf))[0]), ValueError, "point 5"),
+    Row("bvh.signed_distance", "no points", lambda e: e.bvh.signed_distance(np.zeros((0, 3))), None),
     # bvh.overlapping
     Row("bvh.overlapping", "NaN corner", lambda e: e.bvh.overlapping(
         _rays(e, o=(2, 1, np.nan))[0], e.o + 1), ValueError, "lower: box 2 has a NaN"),

@@ -69,6 +69,7 @@ JOBS = {
         shared.closest_points(o[:500]))),
     "count hits": lambda: digest(shared.count_hits(o, d)),
     "all hits": lambda: digest(*(lambda a: (a.offsets, a.t, a.prim))(shared.all_hits(o, d, max_hits=3))),
+    "signed distance": lambda: digest(shared.signed_distance(o[:300])),
     "intersect async": lambda: digest(*(lambda h: (h.t, h.prim))(
         shared.intersect_async(o, d).result())),
     "intersect device arrays": lambda: digest(*(lambda h: (h.t, h.prim))(shared.intersect(

@@ -27,3 +27,7 @@ class QueryTarget(Protocol):
 
     def traversal_depth(self) -> int:
         """The tree's depth (0 for a root leaf), cached."""
+
+    def winding_moments(self) -> cl.Buffer:
+        """The nodes' moments of the winding numbers (:func:`lbvh.queries.winding.node_moments`),
+        cached."""

@@ -34,7 +34,7 @@ from ..builders import bounds
 from ..builders import collapse
 from ..builders import emit
 from ..builders import morton
-from ..queries import all_hits, closest, overlap, ray_order, rays
+from ..queries import all_hits, closest, overlap, ray_order, rays, winding
 from ..builders import refit
 from ..builders import restructure
 from ..device import sort
@@ -142,6 +142,9 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
         for stack, count in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
             add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count,
                                        "SLAB_PAD": traverse.slab_pad(ctx)})
+    # winding.cl: one stack size per bucket
+    for stack in traverse.STACK_BUCKETS:
+        add(winding.KERNEL_FILE, {"STACK_SIZE": stack})
     # closest.cl: one stack size per bucket (NO_FP64 is for tests only)
     for stack, ordered in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
         add(closest.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered})

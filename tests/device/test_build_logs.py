@@ -103,6 +103,7 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
         bvh.overlapping(o, o + np.float32(0.1))
         bvh.count_hits(o, d)
         bvh.all_hits(o, d, max_hits=2)
+        bvh.signed_distance(o)
         bvh.refit(v * np.float32(1.25) if len(bvh.vertices) == len(v) else bvh.vertices * 2)
         bvh.intersect(o, d)
     collapse_leaves(trees[7])

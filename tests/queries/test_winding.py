@@ -1,0 +1,186 @@
+"""Winding numbers, inside tests and signed distance (kernels/winding.cl) against the exact
+float64 sum (lbvh.queries.winding.winding_numbers_numpy), trimesh's contains and the
+closest-point query."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+import lbvh
+from conftest import shared_mesh, shipped_mesh
+from lbvh.queries.closest import closest_points_numpy
+from lbvh.queries.winding import node_moments, winding_numbers_numpy, _triangle_terms
+from lbvh.verification import meshes
+from lbvh.verification.error_bound import INSIDE_TOLERANCE, WINDING_BOUND
+
+
+def box_points(v: np.ndarray, n: int, seed: int, margin: float = 0.2) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    lo, hi = v.min(0), v.max(0)
+    return (lo + (hi - lo) * rng.uniform(-margin, 1 + margin, (n, 3))).astype(np.float32)
+
+
+def closed_meshes():
+    ico = trimesh.creation.icosphere(subdivisions=3)
+    box = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
+    return {"cube_sphere": meshes.cube_sphere(10),
+            "icosphere": (np.float32(ico.vertices), np.uint32(ico.faces)),
+            "box": (np.float32(box.vertices), np.uint32(box.faces))}
+
+
+def test_moments_sum_the_triangles_of_each_node():
+    v, f = meshes.soup(500, 3, 0.05, spread="normal")
+    bvh = lbvh.build(v, f, collapse=True)
+    m = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f).astype(np.float64)
+    rng = np.random.default_rng(0)
+    prims = np.asarray(bvh.prim_order)
+    for node in [bvh.root, *rng.integers(0, bvh.num_nodes, 20)]:
+        # the node's triangles, by walking its subtree
+        stack, tris = [int(node)], []
+        while stack:
+            x = stack.pop()
+            if bvh.is_leaf[x]:
+                first, count = bvh.prim_range[x]
+                tris.extend(prims[first:first + count])
+            else:
+                stack.extend(bvh.children[x])
+        t = _triangle_terms(v, f[tris])
+        p = t[:, 1:4].sum(0) / t[:, 0].sum()
+        n = t[:, 4:7].sum(0)
+        c = v[f[tris]].astype(np.float64).mean(axis=1)
+        moment = (t[:, 4:7, None] * (c - p)[:, None, :]).sum(0)
+        assert np.allclose(m[node, 0:3], p, rtol=1e-6, atol=1e-6)
+        assert np.allclose(m[node, 4:7], n, rtol=1e-5, atol=1e-9)
+        assert np.allclose(m[node, 7:16], moment.ravel(), rtol=1e-4, atol=1e-9)
+        # every vertex of the node lies within R of p
+        reach = np.linalg.norm(v[f[tris]].reshape(-1, 3) - p, axis=1).max()
+        assert reach <= np.sqrt(m[node, 3]) * (1 + 1e-6)
+
+
+@pytest.mark.parametrize("name", ["cube_sphere", "icosphere", "box", "teapot", "soup"])
+def test_winding_numbers_within_the_bound_of_the_exact_sum(name):
+    if name == "teapot":
+        v, f = shipped_mesh("teapot.obj")
+    elif name == "soup":
+        v, f = meshes.soup(3000, 4, 0.03, spread="normal")   # open: fractional winding numbers
+    else:
+        v, f = closed_meshes()[name]
+    bvh = lbvh.build(v, f)
+    p = box_points(v, 1500, 1)
+    exact = winding_numbers_numpy(v, f, p)
+    w = bvh.winding_numbers(p)
+    assert w.dtype == np.float32 and w.shape == (len(p),)
+    assert np.abs(w - exact).max() <= WINDING_BOUND
+    # a larger beta expands fewer nodes: closer to the exact sum
+    assert np.abs(bvh.winding_numbers(p, beta=8) - exact).max() <= WINDING_BOUND / 10
+    # the same answer from another tree, within the bound
+    other = lbvh.build(v, f, builder="sah")
+    assert np.abs(other.winding_numbers(p) - exact).max() <= WINDING_BOUND
+
+
+def test_bunny_with_its_holes():
+    v, f = shared_mesh("stanford-bunny.obj")
+    bvh = lbvh.build(v, f)
+    p = box_points(v, 400, 2)
+    exact = winding_numbers_numpy(v, f, p)
+    assert np.abs(bvh.winding_numbers(p) - exact).max() <= WINDING_BOUND
+    # the scanned bunny is open at its base, and inside points still have w near 1
+    assert np.array_equal(bvh.contains(p), exact > 0.5)
+
+
+@pytest.mark.parametrize("name", ["cube_sphere", "icosphere", "box"])
+def test_contains_agrees_with_trimesh_and_the_exact_sign(name):
+    pytest.importorskip("rtree")   # trimesh's own ray test needs it
+    v, f = closed_meshes()[name]
+    bvh = lbvh.build(v, f)
+    p = box_points(v, 3000, 3)
+    inside = bvh.contains(p)
+    exact = winding_numbers_numpy(v, f, p)
+    assert np.array_equal(inside, exact > 0.5)
+    assert set(np.round(exact, 6)) <= {0.0, 1.0}   # closed: 0 or 1 everywhere off the surface
+    distance = closest_points_numpy(v, f, p)[0]
+    clear = distance > 1e-4 * np.abs(v).max()
+    theirs = trimesh.Trimesh(v, f, process=False).contains(p)
+    assert np.array_equal(inside[clear], theirs[clear])
+    assert 0.1 < inside.mean() < 0.9
+
+
+@pytest.mark.parametrize("name", ["cube_sphere", "icosphere", "box"])
+def test_the_sign_holds_next_to_the_surface(name):
+    """Points INSIDE_TOLERANCE (relative to the extent) off random surface points, at
+    edges and vertices too, towards and away from the centre of these convex meshes
+    (so strictly inside and outside, and no farther from the surface than that):
+    contains tells the sides apart."""
+    v, f = closed_meshes()[name]
+    bvh = lbvh.build(v, f)
+    rng = np.random.default_rng(5)
+    tri = v[f].astype(np.float64)
+    k = rng.integers(0, len(f), 2000)
+    bary = rng.dirichlet([1, 1, 1], len(k))
+    bary[:300] = [1, 0, 0]           # at vertices
+    bary[300:600] = [0.5, 0.5, 0]    # at edges
+    on = (bary[:, :, None] * tri[k]).sum(axis=1)
+    away = on - v.astype(np.float64).mean(axis=0)
+    away /= np.linalg.norm(away, axis=1, keepdims=True)
+    step = INSIDE_TOLERANCE * float(np.ptp(v, axis=0).max())
+    outside = (on + step * away).astype(np.float32)
+    inside = (on - step * away).astype(np.float32)
+    assert not (winding_numbers_numpy(v, f, outside) > 0.5).any()
+    assert (winding_numbers_numpy(v, f, inside) > 0.5).all()
+    assert not bvh.contains(outside).any()
+    assert bvh.contains(inside).all()
+
+
+def test_signed_distance_is_the_closest_distance_negative_inside():
+    v, f = closed_meshes()["icosphere"]
+    bvh = lbvh.build(v, f)
+    p = box_points(v, 1000, 6)
+    sd = bvh.signed_distance(p)
+    distance = closest_points_numpy(v, f, p)[0]
+    exact_inside = winding_numbers_numpy(v, f, p) > 0.5
+    assert sd.dtype == np.float32
+    assert np.allclose(np.abs(sd), distance, rtol=1e-5, atol=1e-6)
+    assert np.array_equal(sd < 0, exact_inside & (distance > 0))
+
+
+def test_open_and_inverted_meshes():
+    v, f = closed_meshes()["icosphere"]
+    # faces pointing inwards: winding -1 inside, so nothing is "inside"
+    flipped = lbvh.build(v, f[:, ::-1].copy())
+    p = np.float32([[0, 0, 0], [0.1, 0.2, 0.3], [3, 0, 0]])
+    w = flipped.winding_numbers(p)
+    assert np.allclose(w, [-1, -1, 0], atol=WINDING_BOUND) and not flipped.contains(p).any()
+    # a hemisphere (open): w between 0 and 1 inside, matching the exact sum
+    keep = v[f].mean(axis=1)[:, 2] > 0
+    bowl = lbvh.build(v, f[keep])
+    q = box_points(v, 500, 7)
+    exact = winding_numbers_numpy(v, f[keep], q)
+    assert np.abs(bowl.winding_numbers(q) - exact).max() <= WINDING_BOUND
+    assert (np.abs(exact - 0.5) < 0.4).any()   # fractional values are there
+
+
+def test_refit_renews_the_moments():
+    v, f = closed_meshes()["cube_sphere"]
+    bvh = lbvh.build(v, f)
+    p = box_points(v * 2, 500, 8)
+    bvh.winding_numbers(p)
+    bvh.refit(v * 2)
+    exact = winding_numbers_numpy(v * 2, f, p)
+    assert np.abs(bvh.winding_numbers(p) - exact).max() <= WINDING_BOUND
+    assert np.array_equal(bvh.contains(p), exact > 0.5)
+
+
+def test_bad_points_and_options():
+    v, f = closed_meshes()["box"]
+    bvh = lbvh.build(v, f)
+    p = box_points(v, 10, 9)
+    p[4, 1] = np.nan
+    with pytest.raises(ValueError, match="point 4"):
+        bvh.winding_numbers(p)
+    with pytest.raises(ValueError, match="point 4"):
+        bvh.signed_distance(p)
+    for beta in (0.5, float("nan"), "x"):
+        with pytest.raises(ValueError, match="beta"):
+            bvh.contains(p[:3], beta=beta)
+    assert bvh.winding_numbers(np.zeros((0, 3))).shape == (0,)
