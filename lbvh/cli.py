@@ -2,8 +2,9 @@
 
 ``lbvh render SCENE -o image.png`` renders a scene; ``lbvh info SCENE`` prints
 the build report of its BVH; ``lbvh devices`` lists the OpenCL devices;
-``lbvh query closest SCENE POINTS.npy`` gives the closest point of the mesh to
-each point; ``lbvh check`` runs the hard-case suite (:mod:`lbvh.verification.check`) and exits 1 if a
+``lbvh query KIND SCENE INPUT`` answers a point query (``closest``,
+``signed-distance``, ``contains``) or a ray query (``count-hits``, ``all-hits``)
+for every point or ray of a file; ``lbvh check`` runs the hard-case suite (:mod:`lbvh.verification.check`) and exits 1 if a
 case fails; ``lbvh --version`` prints the version.
 
 Where a command takes a scene it also takes the name of a mesh that ships with
@@ -180,59 +181,128 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
-def _read_points(path: str) -> np.ndarray:
-    """``(N, 3)`` points from a ``.npy`` file (or ``.txt``/``.csv``: three numbers a row)."""
+def _read_rows(path: str, what: str) -> np.ndarray:
+    """A 2-d array from a ``.npy`` file (or ``.txt``/``.csv``: numbers in rows)."""
     file = Path(path)
     if not file.is_file():
         raise MissingFileError(f"{path}: no such file")
     try:
         if file.suffix.lower() == ".npy":
-            points = np.load(file, allow_pickle=False)
+            rows = np.load(file, allow_pickle=False)
         else:
-            points = np.loadtxt(file, delimiter="," if file.suffix.lower() == ".csv" else None,
-                                ndmin=2)
+            rows = np.loadtxt(file, delimiter="," if file.suffix.lower() == ".csv" else None,
+                              ndmin=2)
     except (ValueError, OSError) as exc:
-        raise ValueError(f"{path}: cannot read points ({exc})") from None
-    return points
+        raise ValueError(f"{path}: cannot read {what} ({exc})") from None
+    return rows
+
+
+def _read_points(path: str) -> np.ndarray:
+    """``(N, 3)`` points from a ``.npy`` file (or ``.txt``/``.csv``: three numbers a row)."""
+    return _read_rows(path, "points")
+
+
+def _read_rays(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """Origins and directions from an ``(N, 6)`` array: ``ox oy oz dx dy dz`` a row."""
+    rows = _read_rows(path, "rays")
+    if rows.ndim != 2 or rows.shape[1] != 6:
+        raise ValueError(f"{path}: rays of shape {rows.shape}, expected (N, 6): "
+                         "ox oy oz dx dy dz a row")
+    return rows[:, :3], rows[:, 3:]
+
+
+#: ``lbvh query`` kinds: what each reads, and the arrays it writes.
+QUERY_KINDS = {
+    "closest": ("points", "distance, points, prim, u, v, found"),
+    "signed-distance": ("points", "signed_distance"),
+    "contains": ("points", "contains, winding"),
+    "count-hits": ("rays", "counts"),
+    "all-hits": ("rays", "offsets, t, prim, u, v, total"),
+}
+
+
+def _stats(name: str, values: np.ndarray) -> dict[str, float | None]:
+    return {f"{name}_min": float(values.min()) if len(values) else None,
+            f"{name}_median": float(np.median(values)) if len(values) else None,
+            f"{name}_max": float(values.max()) if len(values) else None}
+
+
+def _run_query(bvh: Any, kind: str, data: Any, args: argparse.Namespace
+               ) -> tuple[dict[str, np.ndarray], dict[str, Any], list[str]]:
+    """The query's arrays (for OUT.npz), its summary fields and its summary lines."""
+    if kind == "closest":
+        got = bvh.closest_points(data, max_distance=args.max_distance)
+        found = got.distance[got.found]
+        summary = {"found": int(got.found.sum()), **_stats("distance", found),
+                   "overflow": got.overflow_count}
+        lines = [f"found:     {summary['found']:,} with a triangle within {args.max_distance:g}"]
+        if len(found):
+            lines.append(f"distance:  min {summary['distance_min']:.6g}, median "
+                         f"{summary['distance_median']:.6g}, max {summary['distance_max']:.6g}")
+        return ({"distance": got.distance, "points": got.points, "prim": got.prim, "u": got.u,
+                 "v": got.v, "found": got.found}, summary, lines)
+    if kind == "signed-distance":
+        sd = bvh.signed_distance(data)
+        summary = {"inside": int((sd < 0).sum()), **_stats("signed_distance", sd)}
+        return ({"signed_distance": sd}, summary,
+                [f"inside:    {summary['inside']:,} (negative distance)",
+                 f"distance:  min {summary['signed_distance_min']:.6g}, median "
+                 f"{summary['signed_distance_median']:.6g}, max "
+                 f"{summary['signed_distance_max']:.6g}"] if len(sd) else [])
+    if kind == "contains":
+        w = bvh.winding_numbers(data)
+        inside = w > 0.5
+        summary = {"inside": int(inside.sum())}
+        return ({"contains": inside, "winding": w}, summary,
+                [f"inside:    {summary['inside']:,} (winding number > 1/2)"])
+    origins, directions = data
+    if kind == "count-hits":
+        counts = bvh.count_hits(origins, directions)
+        summary = {"hits": int(counts.sum()), "rays_hit": int((counts > 0).sum()),
+                   "most_hits": int(counts.max()) if len(counts) else 0}
+        return ({"counts": counts}, summary,
+                [f"hits:      {summary['hits']:,} in all; {summary['rays_hit']:,} rays hit, "
+                 f"at most {summary['most_hits']} times"])
+    got = bvh.all_hits(origins, directions, max_hits=args.max_hits)
+    summary = {"hits": len(got.t), "rays_hit": int((got.total > 0).sum()),
+               "truncated": int(got.truncated.sum())}
+    return ({"offsets": got.offsets, "t": got.t, "prim": got.prim, "u": got.u, "v": got.v,
+             "total": got.total}, summary,
+            [f"hits:      {summary['hits']:,} kept; {summary['rays_hit']:,} rays hit"
+             + (f", {summary['truncated']:,} past --max-hits" if summary["truncated"] else "")])
 
 
 def cmd_query(args: argparse.Namespace) -> int:
-    """``lbvh query closest SCENE POINTS [-o OUT.npz]``: the closest point of the mesh to
-    each point; a summary on stdout (or JSON), every answer in OUT.npz."""
+    """``lbvh query KIND SCENE INPUT [-o OUT.npz]``: a point or ray query on the mesh;
+    a summary on stdout (or JSON), every answer in OUT.npz."""
     if args.output is not None:
         folder = Path(args.output).resolve().parent
         if not folder.is_dir():
             raise ValueError(f"{args.output}: cannot write, the folder {folder} does not exist")
-    points = _read_points(args.points)
+    reads, writes = QUERY_KINDS[args.kind]
+    data = _read_points(args.input) if reads == "points" else _read_rays(args.input)
     scene = load_scene(args.scene)
     bvh = _build(scene, args)
     start = time.perf_counter()
-    got = bvh.closest_points(points, max_distance=args.max_distance)
+    arrays, fields, lines = _run_query(bvh, args.kind, data, args)
     seconds = time.perf_counter() - start
+    count = len(data) if reads == "points" else len(data[0])
     if args.output is not None:
         with open(args.output, "wb") as out:   # the name as given, no suffix added
-            np.savez(out, distance=got.distance, points=got.points, prim=got.prim, u=got.u,
-                     v=got.v, found=got.found)
-    found = got.distance[got.found]
-    summary = {"scene": _scene_name(args.scene), "points": len(got),
-               "found": int(got.found.sum()), "seconds": seconds,
-               "distance_min": float(found.min()) if len(found) else None,
-               "distance_median": float(np.median(found)) if len(found) else None,
-               "distance_max": float(found.max()) if len(found) else None,
-               "overflow": got.overflow_count, "output": args.output}
+            np.savez(out, **arrays)
+    summary = {"scene": _scene_name(args.scene), "query": args.kind, reads: count,
+               "seconds": seconds, **fields, "output": args.output}
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
         print(f"scene:     {summary['scene']}")
-        print(f"points:    {len(got):,} from {args.points}; {summary['found']:,} with a triangle "
-              f"within {args.max_distance:g}")
-        if len(found):
-            print(f"distance:  min {summary['distance_min']:.6g}, median "
-                  f"{summary['distance_median']:.6g}, max {summary['distance_max']:.6g}")
-        print(f"query:     {seconds * 1e3:.1f} ms ({len(got) / max(seconds, 1e-9) / 1e6:.2f} "
-              "Mpoints/s)")
+        print(f"{reads + ':':<10} {count:,} from {args.input}")
+        for line in lines:
+            print(line)
+        print(f"query:     {seconds * 1e3:.1f} ms ({count / max(seconds, 1e-9) / 1e6:.2f} "
+              f"M{reads}/s)")
         if args.output is not None:
-            print(f"wrote:     {args.output} (distance, points, prim, u, v, found)")
+            print(f"wrote:     {args.output} ({writes})")
     return 0
 
 
@@ -359,15 +429,22 @@ def make_parser() -> argparse.ArgumentParser:
     _add_camera_options(p)
     _add_build_options(p)
     p.set_defaults(func=cmd_render)
-    p = sub.add_parser("query", help="point queries on a scene's mesh (closest points)")
-    p.add_argument("kind", choices=["closest"], help="closest: the nearest point of the mesh")
+    p = sub.add_parser("query", help="point and ray queries on a scene's mesh")
+    p.add_argument("kind", choices=list(QUERY_KINDS),
+                   help="closest: the nearest point of the mesh; signed-distance: the distance, "
+                        "negative inside; contains: inside or not (winding number); count-hits: "
+                        "how often each ray crosses the mesh; all-hits: every hit of each ray")
     p.add_argument("scene", help=SCENE_HELP)
-    p.add_argument("points", help="query points: a .npy of shape (N, 3), or a .txt/.csv of "
-                                  "three numbers a row")
+    p.add_argument("input", help="query points (closest, signed-distance, contains): a .npy of "
+                                 "shape (N, 3), or a .txt/.csv of three numbers a row; rays "
+                                 "(count-hits, all-hits): shape (N, 6), ox oy oz dx dy dz a row")
     p.add_argument("-o", "--output", default=None, metavar="OUT.npz",
-                   help="write every answer (distance, points, prim, u, v, found) to this file")
+                   help="write every answer to this file (the arrays each kind lists in the "
+                        "summary's wrote: line)")
     p.add_argument("--max-distance", type=float, default=float("inf"), metavar="R",
-                   help="search radius: beyond it a point finds nothing (default: none)")
+                   help="closest: search radius, beyond it a point finds nothing (default: none)")
+    p.add_argument("--max-hits", type=int, default=None, metavar="K",
+                   help="all-hits: keep the K nearest hits of each ray (default: all)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     _add_build_options(p)
     p.set_defaults(func=cmd_query)

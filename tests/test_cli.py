@@ -329,3 +329,54 @@ def test_query_errors_are_one_line_and_exit_2(capsys, tmp_path, make, fragment):
     assert main(["query", "closest", "teapot", str(make(tmp_path))]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("lbvh: error:") and fragment in err[0]
+
+
+@pytest.mark.parametrize("kind", ["signed-distance", "contains"])
+def test_query_inside_and_signed_distance(capsys, tmp_path, kind):
+    import lbvh
+    v, f = lbvh.data.teapot()
+    rng = np.random.default_rng(1)
+    points = (v.min(0) + (v.max(0) - v.min(0)) * rng.uniform(0, 1, (300, 3))).astype(np.float32)
+    np.save(tmp_path / "points.npy", points)
+    out = tmp_path / "answers.npz"
+    assert main(["query", kind, "teapot", str(tmp_path / "points.npy"), "-o", str(out),
+                 "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    bvh = lbvh.build(v, f)
+    with np.load(out) as got:
+        if kind == "contains":
+            assert np.array_equal(got["contains"], bvh.contains(points))
+            assert np.array_equal(got["winding"], bvh.winding_numbers(points))
+        else:
+            assert np.array_equal(got["signed_distance"], bvh.signed_distance(points))
+    assert summary["inside"] == int(bvh.contains(points).sum()) and summary["points"] == 300
+
+
+def test_query_ray_counts_and_all_hits(capsys, tmp_path):
+    import lbvh
+    v, f = lbvh.data.teapot()
+    rng = np.random.default_rng(2)
+    o = rng.uniform(-4, 4, (200, 3)).astype(np.float32)
+    d = (v[rng.integers(0, len(v), 200)] - o).astype(np.float32)
+    np.savetxt(tmp_path / "rays.csv", np.hstack([o, d]), delimiter=",")
+    o, d = np.loadtxt(tmp_path / "rays.csv", delimiter=",", ndmin=2).reshape(-1, 2, 3).transpose(1, 0, 2)
+    bvh = lbvh.build(v, f)
+    assert main(["query", "count-hits", "teapot", str(tmp_path / "rays.csv"), "-o",
+                 str(tmp_path / "c.npz")]) == 0
+    text = capsys.readouterr().out
+    assert "rays:      200 from" in text and "hits:" in text
+    with np.load(tmp_path / "c.npz") as got:
+        assert np.array_equal(got["counts"], bvh.count_hits(o, d))
+    assert main(["query", "all-hits", "teapot", str(tmp_path / "rays.csv"), "--max-hits", "1",
+                 "-o", str(tmp_path / "a.npz"), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    want = bvh.all_hits(o, d, max_hits=1)
+    with np.load(tmp_path / "a.npz") as got:
+        for name in ("offsets", "t", "prim", "total"):
+            assert np.array_equal(got[name], getattr(want, name)), name
+    assert summary["hits"] == len(want.t) and summary["rays"] == 200
+    # rays of the wrong shape: one line, exit 2
+    np.save(tmp_path / "bad.npy", np.zeros((3, 3)))
+    assert main(["query", "count-hits", "teapot", str(tmp_path / "bad.npy")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "expected (N, 6)" in err[0]
