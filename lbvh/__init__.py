@@ -1,10 +1,13 @@
 """lbvh: bounding volume hierarchies over triangle meshes, built by OpenCL kernels.
 
 Entry points:
-    lbvh.build(vertices, faces, builder="lbvh"|"sah", device=None, collapse=False,
-               options=None | lbvh.LBVHOptions | lbvh.SAHOptions, **fields) -> lbvh.BVH
+    lbvh.build(vertices, faces, builder="lbvh"|"sah"|"median"|"midpoint", device=None,
+               collapse=False, options=None | lbvh.LBVHOptions | lbvh.SAHOptions
+               | lbvh.SplitOptions, **fields) -> lbvh.BVH
     bvh.intersect(origins, directions) / bvh.occluded(...)  (ray queries) -> lbvh.Hits
+    bvh.count_hits(origins, directions) -> int32, bvh.all_hits(...) -> lbvh.AllHits
     bvh.closest_points(points, max_distance=inf)  (point queries) -> lbvh.Closest
+    bvh.contains(points), bvh.winding_numbers(points), bvh.signed_distance(points)
     bvh.overlapping(lower, upper)  (box queries) -> lbvh.Overlaps
     lbvh.load(path) -> lbvh.BVH
     lbvh.render(bvh, lbvh.Camera(...), mode)
@@ -21,8 +24,9 @@ The package, in layers (a module imports only from layers above it in this list)
 ``tree``            the values builders take and return: ``Mesh``, ``Tree``
 ``builders/``       cost model, options, the stages (bounds, morton, emit, refit),
                     the optimisers (restructure, collapse), the device pipeline,
-                    the SAH reference
-``queries/``        rays, wide records, ray order, the traversal
+                    the SAH reference, the median and midpoint splits
+``queries/``        rays, wide records, ray order, the traversal, every hit,
+                    closest points, winding numbers, box overlaps
 ``verification/``   numpy checks a tree and answers are measured by: validator,
                     quality metrics, float64 oracle, float32 error bound
 ``bvh``             the public :class:`BVH`, facade over mesh, tree and caches
@@ -35,9 +39,10 @@ The package, in layers (a module imports only from layers above it in this list)
 """
 from . import data
 from .api import build, load
-from .builders.options import CollapseOptions, LBVHOptions, SAHOptions
+from .builders.options import CollapseOptions, LBVHOptions, SAHOptions, SplitOptions
 from .bvh import BVH
 from .device import CONTEXT_CHECKS, DeviceError
+from .queries.all_hits import AllHits
 from .queries.closest import Closest
 from .queries.overlap import Overlaps
 from .queries.traverse import Hits
@@ -54,6 +59,7 @@ from .version import __version__
 if _self_test not in CONTEXT_CHECKS:
     CONTEXT_CHECKS.append(_self_test)
 
-__all__ = ["build", "load", "BVH", "Hits", "Closest", "Overlaps", "LBVHOptions", "SAHOptions", "CollapseOptions",
+__all__ = ["build", "load", "BVH", "Hits", "AllHits", "Closest", "Overlaps", "LBVHOptions",
+           "SAHOptions", "SplitOptions", "CollapseOptions",
            "render", "Camera", "load_scene", "sah_cost", "tree_quality", "BVHValidationError",
            "DeviceError", "data", "__version__"]

@@ -14,9 +14,10 @@ from typing import Any
 import numpy as np
 
 from . import device as dev
-from .builders import pipeline, sah
+from .builders import pipeline, sah, topdown
 from .builders.collapse import collapse
-from .builders.options import CollapseOptions, LBVHOptions, SAHOptions, make, options_from
+from .builders.options import (SPLIT_BUILDERS, CollapseOptions, LBVHOptions, SAHOptions,
+                               SplitOptions, make, options_from)
 from .bvh import SAVE_FORMAT_VERSION, BVH
 from .layout import NODE_DTYPE
 from .mesh import MissingFileError, as_mesh
@@ -36,7 +37,7 @@ DEFAULT = _Default()
 
 def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: Any = None,
           collapse: bool | CollapseOptions = False,
-          options: LBVHOptions | SAHOptions | None = None,
+          options: LBVHOptions | SAHOptions | SplitOptions | None = None,
           key_bits: int | str | _Default = DEFAULT,
           auto_duplicate_fraction: float | _Default = DEFAULT,
           treelet_rounds: int | _Default = DEFAULT, c_node: float | _Default = DEFAULT,
@@ -49,8 +50,9 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
             mesh file (OBJ, PLY, STL, glTF..., read with trimesh; the meshes of a file
             of several are flattened into one) (then no ``faces``).
         faces: ``(F, 3)`` integer vertex indices.
-        builder: ``"lbvh"`` (device, Karras 2012) or ``"sah"`` (serial full-sweep SAH on
-            the host, the reference).
+        builder: ``"lbvh"`` (device, Karras 2012), ``"sah"`` (serial full-sweep SAH on
+            the host, the reference), or the course's top-down object splits on the
+            host, ``"median"`` and ``"midpoint"`` (:mod:`lbvh.builders.topdown`).
         device: a device name (see :mod:`lbvh.device`), a ``pyopencl.Device``, or
             ``None`` for ``$LBVH_DEVICE`` / PoCL's CPU device.
         collapse: ``"lbvh"`` only: ``True`` or a :class:`lbvh.CollapseOptions`: after the
@@ -65,7 +67,8 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
             ``LBVHOptions`` as keywords (``key_bits``: 30, 63 or ``"auto"``);
             not given, the documented default.
         c_node, c_tri, max_leaf_size: the fields of ``SAHOptions`` (``"sah"``) or, with
-            ``collapse=True``, of ``CollapseOptions``; not given, the default.
+            ``collapse=True``, of ``CollapseOptions``; ``max_leaf_size`` alone: of
+            ``SplitOptions`` (``"median"``, ``"midpoint"``); not given, the default.
         unknown: any other name is refused with a ``ValueError`` naming it.
 
     Returns:
@@ -98,6 +101,10 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
         upload = time.perf_counter() - t0
         if builder == "sah":
             tree = sah.build_tree(ctx, mesh, build_options, progress)
+            tree.report.upload_seconds += upload
+            return BVH(mesh, tree)
+        if builder in SPLIT_BUILDERS:
+            tree = topdown.build_tree(ctx, mesh, builder, build_options)
             tree.report.upload_seconds += upload
             return BVH(mesh, tree)
         return _build_lbvh(ctx, mesh, upload, build_options, collapse_options)

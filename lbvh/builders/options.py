@@ -11,6 +11,8 @@ options                        for
 :class:`LBVHOptions`           ``builder="lbvh"``: the device pipeline (Karras 2012)
                                and its treelet restructuring (Karras & Aila 2013)
 :class:`SAHOptions`            ``builder="sah"``: the serial full-sweep SAH reference
+:class:`SplitOptions`          ``builder="median"`` and ``"midpoint"``: the course's
+                               top-down object splits (:mod:`lbvh.builders.topdown`)
 :class:`CollapseOptions`       ``collapse=True``: the leaf collapse after an LBVH build
 =============================  =====================================================
 """
@@ -29,7 +31,9 @@ from .restructure import check_rounds
 #: ``key_bits`` as the caller gives it -> bits of a key (``None``: chosen per mesh).
 KEY_CHOICES = {"auto": None, 30: 32, 63: 64, "30": 32, "63": 64}
 
-BUILDERS = ("lbvh", "sah")
+BUILDERS = ("lbvh", "sah", "median", "midpoint")
+#: The host builders that split top down without a cost model.
+SPLIT_BUILDERS = ("median", "midpoint")
 
 
 @dataclass(frozen=True)
@@ -76,6 +80,16 @@ class SAHOptions:
 
 
 @dataclass(frozen=True)
+class SplitOptions:
+    """The median and midpoint builders: nodes of at most ``max_leaf_size``
+    primitives are leaves (default 1, as the LBVH's)."""
+    max_leaf_size: int = 1
+
+    def __post_init__(self) -> None:
+        check_sah_constants(C_NODE, C_TRI, self.max_leaf_size)
+
+
+@dataclass(frozen=True)
 class CollapseOptions:
     """The leaf collapse: the same SAH constants as :class:`SAHOptions`;
     ``max_leaf_size`` is the largest leaf it makes (existing leaves stay)."""
@@ -100,21 +114,22 @@ def make(cls: type, given: dict[str, Any], what: str) -> Any:
 
 
 def options_from(builder: str, collapse: "bool | CollapseOptions", given: dict[str, Any],
-                 options: "LBVHOptions | SAHOptions | None" = None
-                 ) -> tuple[LBVHOptions | SAHOptions, CollapseOptions | None]:
+                 options: "LBVHOptions | SAHOptions | SplitOptions | None" = None
+                 ) -> tuple[LBVHOptions | SAHOptions | SplitOptions, CollapseOptions | None]:
     """The options objects of ``lbvh.build(builder=..., collapse=..., options=..., **given)``.
 
     ``options`` (an options object of the builder) and ``collapse`` (``True``
     or a :class:`CollapseOptions`) may be given as data; otherwise, with
     ``builder="lbvh"`` the names of :class:`LBVHOptions` in ``given`` go to
     the build and, with ``collapse``, the others to :class:`CollapseOptions`;
-    with ``builder="sah"`` all go to :class:`SAHOptions`. Raises ``ValueError``
+    with ``builder="sah"`` all go to :class:`SAHOptions`, with ``"median"`` or
+    ``"midpoint"`` to :class:`SplitOptions`. Raises ``ValueError``
     on an unknown builder or name, a bad value, an option of the other builder,
     or the same option given both ways.
     """
     if builder not in BUILDERS:
         raise ValueError(f"builder: {builder!r}; expected one of {', '.join(BUILDERS)}")
-    expected = LBVHOptions if builder == "lbvh" else SAHOptions
+    expected = {"lbvh": LBVHOptions, "sah": SAHOptions}.get(builder, SplitOptions)
     if options is not None:
         if not isinstance(options, expected):
             raise ValueError(f"options: {type(options).__name__} given; builder={builder!r} "
@@ -126,7 +141,7 @@ def options_from(builder: str, collapse: "bool | CollapseOptions", given: dict[s
         given = {**{f.name: getattr(options, f.name) for f in dataclasses.fields(options)},
                  **given}
     if isinstance(collapse, CollapseOptions):
-        if builder == "sah":
+        if builder != "lbvh":
             raise ValueError("collapse: only for builder='lbvh' (the SAH builder already makes "
                              "multi-triangle leaves)")
         own = LBVHOptions(**{k: v for k, v in given.items() if k in field_names(LBVHOptions)})
@@ -137,6 +152,14 @@ def options_from(builder: str, collapse: "bool | CollapseOptions", given: dict[s
         return own, collapse
     if not isinstance(collapse, (bool, np.bool_)):
         raise ValueError(f"collapse: {collapse!r}; expected True, False or a CollapseOptions")
+    if builder in SPLIT_BUILDERS:
+        if collapse:
+            raise ValueError(f"collapse: only for builder='lbvh' (the {builder} builder makes "
+                             "leaves of max_leaf_size)")
+        lbvh_only = set(given) & field_names(LBVHOptions)
+        if lbvh_only:
+            raise ValueError(f"{', '.join(sorted(lbvh_only))}: only for builder='lbvh'")
+        return make(SplitOptions, given, f"the {builder} builder"), None
     if builder == "sah":
         if collapse:
             raise ValueError("collapse: only for builder='lbvh' (the SAH builder already makes "
