@@ -40,6 +40,9 @@
  *   WIDE=0           read the tree's own nodes instead of the wide records
  *   WIDTH=4 or 8     children per wide record (kernels/wide.cl), default 8
  *   RAY_ORDER=1      trace the rays in the order order[] gives (ray_order.cl)
+ *   ORDER_GLOBAL=1   visit nodes by increasing entry distance over all pending
+ *                    nodes (a heap; Kay & Kajiya 1986) instead of ordered
+ *                    depth first; closest hit only (see push)
  *
  * Rays come as four arrays: origins and directions (3 floats per ray), tmin
  * and tmax (one float per ray, or one for all rays with a stride of 0).
@@ -61,8 +64,15 @@
 #ifndef STACK_SIZE
 #define STACK_SIZE 64
 #endif
+#ifndef ORDER_GLOBAL
+#define ORDER_GLOBAL 0
+#endif
 
 #include "ray_triangle.h"
+
+#if ORDER_GLOBAL && ANY_HIT
+#error "ORDER_GLOBAL is for closest hits: an any-hit query stops at its first hit anyway"
+#endif
 
 #ifndef WIDE
 #define WIDE 1
@@ -104,6 +114,59 @@ inline int2 child_ref(__global const int *words, int x, int k) {
     const int c = words[8 * x + 3 + 4 * k];
     const int y = words[8 * c + 7];
     return node_is_leaf(y) ? (int2)(words[8 * c + 3], y) : (int2)(c, 0);
+}
+#endif
+
+/* The pending nodes: references (x, y) with their entry distances. Ordered
+ * traversal keeps them on a stack (the nearest child of a node is pushed
+ * last); ORDER_GLOBAL=1 keeps them in a binary min-heap on the entry distance
+ * (Kay & Kajiya 1986): the traversal always goes on with the nearest pending
+ * node of all, and stops when that lies beyond the closest hit. Either way a
+ * push beyond STACK_SIZE entries drops the node and sets FLAG_OVERFLOW. */
+inline void push(int *sx, int *sy, float *se, int *sp, int *flag, int x, int y, float e) {
+    if (*sp >= STACK_SIZE) {
+        *flag |= FLAG_OVERFLOW;
+        return;
+    }
+    int c = (*sp)++;
+#if ORDER_GLOBAL
+    while (c > 0) {   /* sift up */
+        const int parent = (c - 1) >> 1;
+        if (se[parent] <= e) break;
+        sx[c] = sx[parent];
+        sy[c] = sy[parent];
+        se[c] = se[parent];
+        c = parent;
+    }
+#endif
+    sx[c] = x;
+    sy[c] = y;
+    se[c] = e;
+}
+
+#if ORDER_GLOBAL
+/* Take the heap's nearest entry (sp > 0). */
+inline void pop_nearest(int *sx, int *sy, float *se, int *sp, int *x, int *y, float *e) {
+    *x = sx[0];
+    *y = sy[0];
+    *e = se[0];
+    const int n = --(*sp);
+    const int lx = sx[n], ly = sy[n];
+    const float le = se[n];
+    int i = 0;
+    for (;;) {   /* sift the last entry down from the root */
+        int c = 2 * i + 1;
+        if (c >= n) break;
+        if (c + 1 < n && se[c + 1] < se[c]) ++c;
+        if (se[c] >= le) break;
+        sx[i] = sx[c];
+        sy[i] = sy[c];
+        se[i] = se[c];
+        i = c;
+    }
+    sx[i] = lx;
+    sy[i] = ly;
+    se[i] = le;
 }
 #endif
 
@@ -242,16 +305,9 @@ __kernel void traverse(__global const float4 *nodes, __global const float *recor
                 }
                 if (n > 0) {
                     __global const int *ref = record_words + 8 * WIDTH * x + 6 * WIDTH;
-                    for (int m = n - 1; m > 0; --m) {
-                        if (sp < STACK_SIZE) {
-                            stack_x[sp] = ref[lane[m]];
-                            stack_y[sp] = ref[WIDTH + lane[m]];
-                            stack_entry[sp] = enter.s[lane[m]];
-                            ++sp;
-                        } else {
-                            flag |= FLAG_OVERFLOW;
-                        }
-                    }
+                    for (int m = n - 1; m > 0; --m)
+                        push(stack_x, stack_y, stack_entry, &sp, &flag, ref[lane[m]],
+                             ref[WIDTH + lane[m]], enter.s[lane[m]]);
                     next_x = ref[lane[0]];
                     next_y = ref[WIDTH + lane[0]];
                     next_entry = enter.s[lane[0]];
@@ -269,15 +325,9 @@ __kernel void traverse(__global const float4 *nodes, __global const float *recor
                     next_y = near.y;
                     next_entry = left_first ? e0 : e1;
                     have_next = 1;
-                    if (sp < STACK_SIZE) {
-                        const int2 far = child_ref(record_words, x, left_first ? 1 : 0);
-                        stack_x[sp] = far.x;
-                        stack_y[sp] = far.y;
-                        stack_entry[sp] = left_first ? e1 : e0;
-                        ++sp;
-                    } else {
-                        flag |= FLAG_OVERFLOW;
-                    }
+                    const int2 far = child_ref(record_words, x, left_first ? 1 : 0);
+                    push(stack_x, stack_y, stack_entry, &sp, &flag, far.x, far.y,
+                         left_first ? e1 : e0);
                 } else if (h0 || h1) {
                     const int2 only = child_ref(record_words, x, h0 ? 0 : 1);
                     next_x = only.x;
@@ -287,6 +337,19 @@ __kernel void traverse(__global const float4 *nodes, __global const float *recor
                 }
 #endif
             }
+#if ORDER_GLOBAL
+            /* Best first: the nearest child goes on only if no pending node is nearer. */
+            if (have_next && sp > 0 && stack_entry[0] < next_entry) {
+                push(stack_x, stack_y, stack_entry, &sp, &flag, next_x, next_y, next_entry);
+                have_next = 0;
+            }
+            if (!have_next) {
+                /* The nearest pending node; none left, or beyond the closest hit: done. */
+                const float cut = min_keep(best, ray.tmax) * SLAB_PAD;
+                if (sp == 0 || stack_entry[0] > cut) break;
+                pop_nearest(stack_x, stack_y, stack_entry, &sp, &next_x, &next_y, &next_entry);
+            }
+#else
             if (!have_next) {
                 /* Pop, dropping subtrees whose entry lies beyond the closest hit. */
                 const float cut = min_keep(best, ray.tmax) * SLAB_PAD;
@@ -297,6 +360,7 @@ __kernel void traverse(__global const float4 *nodes, __global const float *recor
                 next_y = stack_y[sp];
                 next_entry = stack_entry[sp];
             }
+#endif
             x = next_x;
             y = next_y;
             x_entry = next_entry;

@@ -257,11 +257,12 @@ class BVH:
     def intersect(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
                   triangle_test: traverse.TriangleTest = "watertight", counters: bool = False,
                   batch_size: int = traverse.DEFAULT_BATCH, stack_size: int | None = None,
-                  invalid_rays: InvalidRays = "raise") -> Hits | DeviceHitArrays:
+                  invalid_rays: InvalidRays = "raise",
+                  order: traverse.NodeOrder = "ordered") -> Hits | DeviceHitArrays:
         return traverse.intersect(self, origins, directions, tmin, tmax,
                                   triangle_test=triangle_test, counters=counters,
                                   batch_size=batch_size, stack_size=stack_size,
-                                  invalid_rays=invalid_rays)
+                                  invalid_rays=invalid_rays, order=order)
 
     def occluded(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
                  triangle_test: traverse.TriangleTest = "watertight", counters: bool = False,
@@ -276,12 +277,13 @@ class BVH:
     def intersect_async(self, origins: Any, directions: Any, tmin: Any = 0.0,
                         tmax: Any = np.inf, *, triangle_test: traverse.TriangleTest = "watertight",
                         counters: bool = False, batch_size: int = traverse.DEFAULT_BATCH,
-                        stack_size: int | None = None, invalid_rays: InvalidRays = "raise"
+                        stack_size: int | None = None, invalid_rays: InvalidRays = "raise",
+                        order: traverse.NodeOrder = "ordered"
                         ) -> "Future[Hits | DeviceHitArrays]":
         return traverse.intersect_async(self, origins, directions, tmin, tmax,
                                         triangle_test=triangle_test, counters=counters,
                                         batch_size=batch_size, stack_size=stack_size,
-                                        invalid_rays=invalid_rays)
+                                        invalid_rays=invalid_rays, order=order)
 
     def occluded_async(self, origins: Any, directions: Any, tmin: Any = 0.0,
                        tmax: Any = np.inf, *, triangle_test: traverse.TriangleTest = "watertight",

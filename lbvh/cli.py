@@ -322,7 +322,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     bvh = _build(scene, args)
     build_seconds = time.perf_counter() - start
     result = render(bvh, camera, args.mode, ao_samples=args.ao_samples,
-                    triangle_test=args.triangle_test)
+                    triangle_test=args.triangle_test, order=args.order)
     result.save(args.output)
     report = bvh.report()
     device_time = f" (device {report.device_seconds * 1e3:.1f} ms)" if report.device_seconds else ""
@@ -332,7 +332,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     print(f"device:    {bvh.ctx.name}")
     print(f"build:     {args.builder} in {build_seconds * 1e3:.1f} ms{device_time}, "
           f"depth {report.depth}")
-    print(f"render:    {args.mode} {camera.width}x{camera.height} ({args.triangle_test}) in "
+    order = "" if args.order == "ordered" else f", {args.order} order"
+    print(f"render:    {args.mode} {camera.width}x{camera.height} ({args.triangle_test}{order}) in "
           f"{result.total_seconds * 1e3:.1f} ms, of which first calls (kernel compile) "
           f"{result.warmup_seconds * 1e3:.1f} ms")
     print(f"rays:      {result.rays:,} in {result.trace_seconds * 1e3:.1f} ms = "
@@ -426,6 +427,9 @@ def make_parser() -> argparse.ArgumentParser:
                    help=f"ambient occlusion rays per pixel (default {AO_SAMPLES})")
     p.add_argument("--triangle-test", default="watertight", choices=["watertight", "moller"],
                    help="ray/triangle test (default: watertight)")
+    p.add_argument("--order", default="ordered", choices=["ordered", "global"],
+                   help="closest-hit traversal: ordered depth first (default) or global, the "
+                        "nearest pending node first (Kay & Kajiya); the same image")
     _add_camera_options(p)
     _add_build_options(p)
     p.set_defaults(func=cmd_render)

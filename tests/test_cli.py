@@ -380,3 +380,12 @@ def test_query_ray_counts_and_all_hits(capsys, tmp_path):
     assert main(["query", "count-hits", "teapot", str(tmp_path / "bad.npy")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "expected (N, 6)" in err[0]
+
+
+def test_render_global_order_gives_the_same_image(capsys, tmp_path):
+    base = ["render", "teapot", "--size", "48x32", "--mode", "depth"]
+    assert main(base + ["-o", str(tmp_path / "a.exr")]) == 0
+    assert main(base + ["-o", str(tmp_path / "b.exr"), "--order", "global"]) == 0
+    assert "global order" in capsys.readouterr().out
+    from lbvh.rendering.image import read_image
+    assert np.array_equal(read_image(tmp_path / "a.exr"), read_image(tmp_path / "b.exr"))

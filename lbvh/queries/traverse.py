@@ -81,6 +81,12 @@ STACK_BUCKETS = (32, 64, 96, 128, 192, 256, 384, 512, 768)
 TRIANGLE_TESTS = {"watertight": 0, "moller": 1}
 TriangleTest = Literal["watertight", "moller"]
 
+#: The order of a closest-hit traversal: "ordered" (depth first, the nearest child
+#: first; default) or "global" (the nearest pending node of all, from a heap: Kay &
+#: Kajiya 1986). The same hits either way (up to triangles hit at the same t).
+NODE_ORDERS = {"ordered": 0, "global": 1}
+NodeOrder = Literal["ordered", "global"]
+
 #: Rays per kernel launch of the host API unless ``batch_size`` says otherwise.
 DEFAULT_BATCH = 1 << 20
 
@@ -312,16 +318,21 @@ def slab_pad(ctx: dev.Context) -> str:
 
 
 def kernel_defines(ctx: dev.Context, any_hit: bool, triangle_test: str, counters: bool,
-                   stack_size: int) -> dict[str, int | str]:
+                   stack_size: int, node_order: str = "ordered") -> dict[str, int | str]:
     """The -D defines of kernels/traverse.cl for a query (options checked here)."""
+    if node_order not in NODE_ORDERS:
+        raise ValueError(f"order: {node_order!r}; expected one of {', '.join(NODE_ORDERS)}")
     if triangle_test not in TRIANGLE_TESTS:
         raise ValueError(f"triangle_test: {triangle_test!r}; expected one of "
                          f"{', '.join(TRIANGLE_TESTS)}")
     if not isinstance(stack_size, (int, np.integer)) or stack_size < 1:
         raise ValueError(f"stack_size: {stack_size!r}; expected a positive integer")
-    return {"ANY_HIT": int(bool(any_hit)), "COUNTERS": int(bool(counters)),
-            "TRIANGLE_TEST": TRIANGLE_TESTS[triangle_test], "STACK_SIZE": int(stack_size),
-            "SLAB_PAD": slab_pad(ctx)}
+    defines = {"ANY_HIT": int(bool(any_hit)), "COUNTERS": int(bool(counters)),
+               "TRIANGLE_TEST": TRIANGLE_TESTS[triangle_test], "STACK_SIZE": int(stack_size),
+               "SLAB_PAD": slab_pad(ctx)}
+    if NODE_ORDERS[node_order] and not any_hit:
+        defines["ORDER_GLOBAL"] = 1
+    return defines
 
 
 def _launch(count: int) -> dev.Launch:
@@ -350,7 +361,8 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
                   stack_size: int | None = None, hits: cl.Buffer | None = None,
                   flags: cl.Buffer | None = None, counter_buf: cl.Buffer | None = None,
                   wait_for: list[cl.Event] | None = None, order: cl.Buffer | None = None,
-                  defines: dict[str, int | str] | None = None) -> DeviceHits:
+                  defines: dict[str, int | str] | None = None,
+                  node_order: str = "ordered") -> DeviceHits:
     """Trace rays already on the device; nothing is read back.
 
     ``rays`` (see :func:`upload_rays`) must have passed :func:`check_rays`.
@@ -358,7 +370,8 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
     planes of ``count`` float32, t, u, v and the primitive as int32), ``flags`` (4),
     ``counter_buf`` (8, with ``counters``). ``order`` (int32 per ray, a
     permutation, see :mod:`lbvh.ray_order`) sets the order the rays are traced
-    in; the answers stay in the rays' own slots. ``defines`` adds or overrides
+    in; the answers stay in the rays' own slots; ``node_order`` the order nodes are
+    visited in (:data:`NODE_ORDERS`). ``defines`` adds or overrides
     -D defines of kernels/traverse.cl (tests, experiments).
     """
     ctx, tree = target.ctx, target.tree
@@ -378,7 +391,8 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
                  wide.root_y, tree.num_nodes, rays.origins, rays.directions, rays.tmin, rays.tmax,
                  rays.interval_stride, order if order is not None else flags, hits, flags,
                  counter_buf if counters else flags, count, launch.per_item,
-                 defines={**kernel_defines(ctx, any_hit, triangle_test, counters, stack_size),
+                 defines={**kernel_defines(ctx, any_hit, triangle_test, counters, stack_size,
+                                          node_order),
                           "WIDE": int(wide.packed), "WIDTH": wide.width,
                           "RAY_ORDER": int(order is not None), **(defines or {})},
                  wait_for=wait_for)
@@ -404,24 +418,26 @@ def _check_batch(batch_size: Any) -> int:
 
 def _trace(target: QueryTarget, origins: Any, directions: Any, tmin: Any, tmax: Any, any_hit: bool,
            triangle_test: str, counters: bool, batch_size: int, stack_size: int | None,
-           invalid_rays: str) -> Hits | DeviceHitArrays:
+           invalid_rays: str, node_order: str = "ordered") -> Hits | DeviceHitArrays:
     """Check the options and the rays, then trace them: host arrays in batches, pyopencl
     arrays in place."""
     batch_size = _check_batch(batch_size)
     check_invalid_rays(invalid_rays)
+    kernel_defines(target.ctx, any_hit, triangle_test, counters, 1, node_order)   # the options
     if is_device_array(origins) or is_device_array(directions):
         return _trace_arrays(target, origins, directions, tmin, tmax, any_hit, triangle_test,
-                             counters, stack_size, invalid_rays)
+                             counters, stack_size, invalid_rays, node_order)
     rays = check_rays(origins, directions, tmin, tmax, invalid_rays=invalid_rays)
     geometry = (target.mesh.vertices, target.mesh.faces)
     if rays.invalid is None:
-        hits = _trace_rays(target, rays, any_hit, triangle_test, counters, batch_size, stack_size)
+        hits = _trace_rays(target, rays, any_hit, triangle_test, counters, batch_size, stack_size,
+                           node_order)
         hits.geometry = geometry
         return hits
     # invalid_rays="miss" and some rays are bad: the good ones are traced alone
     good = np.flatnonzero(~rays.invalid)
     part = _trace_rays(target, rays.take(good), any_hit, triangle_test, counters, batch_size,
-                       stack_size)
+                       stack_size, node_order)
     n = len(rays)
     hits = Hits(t=np.full(n, np.inf, np.float32), prim=np.full(n, -1, np.int32),
                 u=np.zeros(n, np.float32), v=np.zeros(n, np.float32), overflow=np.zeros(n, bool),
@@ -436,7 +452,8 @@ def _trace(target: QueryTarget, origins: Any, directions: Any, tmin: Any, tmax: 
 
 
 def _trace_rays(target: QueryTarget, rays: Rays, any_hit: bool, triangle_test: str,
-                counters: bool, batch_size: int, stack_size: int | None) -> Hits:
+                counters: bool, batch_size: int, stack_size: int | None,
+                node_order: str = "ordered") -> Hits:
     """Trace checked rays, all good, in batches of ``batch_size``."""
     n = len(rays)
     planes = np.empty((4, n), np.float32)
@@ -473,7 +490,7 @@ def _trace_rays(target: QueryTarget, rays: Rays, any_hit: bool, triangle_test: s
             result = trace_buffers(target, device_rays, any_hit=any_hit, triangle_test=triangle_test,
                                    counters=counters, stack_size=stack_size, hits=bufs["hits"],
                                    flags=bufs["flags"], counter_buf=bufs.get("count"),
-                                   wait_for=ups, order=order)
+                                   wait_for=ups, order=order, node_order=node_order)
             for k in range(4):
                 cl.enqueue_copy(queue, planes[k, start:stop], bufs["hits"], src_offset=4 * k * m,
                                 wait_for=[result.event], is_blocking=False)
@@ -498,7 +515,7 @@ def _trace_rays(target: QueryTarget, rays: Rays, any_hit: bool, triangle_test: s
 
 def _trace_arrays(target: QueryTarget, origins: Any, directions: Any, tmin: Any, tmax: Any,
                   any_hit: bool, triangle_test: str, counters: bool, stack_size: int | None,
-                  invalid_rays: str) -> DeviceHitArrays:
+                  invalid_rays: str, node_order: str = "ordered") -> DeviceHitArrays:
     """Trace rays held in pyopencl arrays without a host round trip of the rays or the
     results: the values are checked on the device (:func:`lbvh.queries.rays.device_invalid`:
     a 4-byte read of how many are bad), bad ones raise (their first named, read back)
@@ -522,7 +539,7 @@ def _trace_arrays(target: QueryTarget, origins: Any, directions: Any, tmin: Any,
     if n:
         out = trace_buffers(target, rays, any_hit=any_hit, triangle_test=triangle_test,
                             counters=counters, stack_size=stack_size, wait_for=wait_for,
-                            order=order)
+                            order=order, node_order=node_order)
     else:   # nothing to launch; the options are checked all the same
         kernel_defines(ctx, any_hit, triangle_test, counters, stack_size or 1)
         out = DeviceHits(0, ctx.memory.alloc(16), ctx.memory.alloc(4),
@@ -595,6 +612,12 @@ _RAISES_DOC = """
 """
 
 _INTERSECT_SUMMARY = "Closest hit of each ray in ``[tmin, tmax]``."
+_INTERSECT_ARGS = """
+        order: ``"ordered"`` (default): depth first, the nearest child first; ``"global"``:
+            always the nearest pending node of all (a heap, Kay & Kajiya 1986), stopping
+            when it lies beyond the closest hit. The same hits; ``counters`` show the
+            nodes each visits. A tree whose pending nodes outgrow the stack sets
+            ``overflow`` as ever."""
 _INTERSECT_RETURNS = """
     Returns:
         :class:`Hits` (:class:`DeviceHitArrays` for pyopencl rays). Among triangles hit
@@ -620,7 +643,7 @@ def query_doc(which: str, *, target: bool) -> str:
     """The docstring of the ``which`` query (``"intersect"`` or ``"occluded"``), with the
     ``target`` argument (this module's functions) or without (:class:`lbvh.BVH`'s methods)."""
     summary, extra, returns = {
-        "intersect": (_INTERSECT_SUMMARY, "", _INTERSECT_RETURNS),
+        "intersect": (_INTERSECT_SUMMARY, _INTERSECT_ARGS, _INTERSECT_RETURNS),
         "occluded": (_OCCLUDED_SUMMARY, _OCCLUDED_ARGS, _OCCLUDED_RETURNS)}[which]
     return (f"{summary}\n\n    Args:{_TARGET_DOC if target else ''}{_ARGS_DOC}{extra}\n"
             f"{returns}{_RAISES_DOC}")
@@ -639,10 +662,10 @@ def async_doc(which: str) -> str:
 def intersect(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
               tmax: Any = np.inf, *, triangle_test: TriangleTest = "watertight",
               counters: bool = False, batch_size: int = DEFAULT_BATCH,
-              stack_size: int | None = None,
-              invalid_rays: InvalidRays = "raise") -> Hits | DeviceHitArrays:
+              stack_size: int | None = None, invalid_rays: InvalidRays = "raise",
+              order: NodeOrder = "ordered") -> Hits | DeviceHitArrays:
     return _trace(target, origins, directions, tmin, tmax, False, triangle_test, counters,
-                  batch_size, stack_size, invalid_rays)
+                  batch_size, stack_size, invalid_rays, order)
 
 
 @dev.serialised
@@ -680,12 +703,12 @@ def _executor() -> ThreadPoolExecutor:
 def intersect_async(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
                     tmax: Any = np.inf, *, triangle_test: TriangleTest = "watertight",
                     counters: bool = False, batch_size: int = DEFAULT_BATCH,
-                    stack_size: int | None = None,
-                    invalid_rays: InvalidRays = "raise") -> "Future[Hits | DeviceHitArrays]":
+                    stack_size: int | None = None, invalid_rays: InvalidRays = "raise",
+                    order: NodeOrder = "ordered") -> "Future[Hits | DeviceHitArrays]":
     return _executor().submit(intersect, target, origins, directions, tmin, tmax,
                               triangle_test=triangle_test, counters=counters,
                               batch_size=batch_size, stack_size=stack_size,
-                              invalid_rays=invalid_rays)
+                              invalid_rays=invalid_rays, order=order)
 
 
 def occluded_async(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,

@@ -26,6 +26,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..bvh import BVH
+from ..queries.traverse import kernel_defines
 from ..verification.oracle import brute_force
 from .camera import Camera
 from .image import heat_colours, image_kind, to_8bit, write_image
@@ -189,8 +190,8 @@ class RenderResult:
 
 class _Tracer:
     """Times the ray queries of one render and compiles each variant on one ray first."""
-    def __init__(self, bvh: Any, triangle_test: str) -> None:
-        self.bvh, self.triangle_test = bvh, triangle_test
+    def __init__(self, bvh: Any, triangle_test: str, order: str = "ordered") -> None:
+        self.bvh, self.triangle_test, self.order = bvh, triangle_test, order
         self.rays = 0
         self.seconds = 0.0
         self.warmup_seconds = 0.0
@@ -214,7 +215,7 @@ class _Tracer:
 
     def closest(self, origins: np.ndarray, directions: np.ndarray, counters: bool = False) -> Any:
         hits = self._timed(self.bvh.intersect, ("closest", counters), origins, directions,
-                           np.inf, counters=counters)
+                           np.inf, counters=counters, order=self.order)
         self.overflow_count += int(hits.overflow_count)
         return hits
 
@@ -271,7 +272,7 @@ def ambient_occlusion(occluded: Callable[[np.ndarray, np.ndarray, float], np.nda
 
 def render(bvh: Any, camera: Camera, mode: str = "normals", *, ao_samples: int = AO_SAMPLES,
            ao_distance: float = AO_DISTANCE, seed: int = 0,
-           triangle_test: str = "watertight") -> RenderResult:
+           triangle_test: str = "watertight", order: str = "ordered") -> RenderResult:
     """Render ``bvh`` (an :class:`lbvh.BVH`) seen by ``camera`` with the traversal kernel.
 
     Args:
@@ -279,6 +280,8 @@ def render(bvh: Any, camera: Camera, mode: str = "normals", *, ao_samples: int =
         ao_samples, ao_distance, seed: ambient occlusion settings (mode ``"ao"``),
             see :func:`ambient_occlusion`.
         triangle_test: ``"watertight"`` or ``"moller"``, see :func:`lbvh.queries.traverse.intersect`.
+        order: the closest-hit traversal's order, ``"ordered"`` or ``"global"`` (the same
+            image), see :func:`lbvh.queries.traverse.intersect`.
 
     Returns:
         :class:`RenderResult` with the float image and the timings.
@@ -289,7 +292,8 @@ def render(bvh: Any, camera: Camera, mode: str = "normals", *, ao_samples: int =
         raise ValueError(f"camera: expected an lbvh.Camera, got {type(camera).__name__}")
     check_mode(mode)
     start = time.perf_counter()
-    tracer = _Tracer(bvh, triangle_test)
+    kernel_defines(bvh.ctx, False, triangle_test, False, 1, order)   # the options, first
+    tracer = _Tracer(bvh, triangle_test, order)
     origins, directions = camera.rays()
     hits = tracer.closest(origins, directions, counters=(mode == "heatmap"))
     w, h = camera.width, camera.height

@@ -126,6 +126,8 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
             # the record width still set
             for extra in _product(WIDE=(1, 0), WIDTH=wide.WIDTHS, RAY_ORDER=(0, 1)):
                 add(traverse.KERNEL_FILE, {**base, **extra})
+                if not any_hit:   # intersect(order="global"): closest hits only
+                    add(traverse.KERNEL_FILE, {**base, **extra, "ORDER_GLOBAL": 1})
     # device_rays.cl: the checks and marks (no defines), the result's arrays, and
     # the conversion of each element type lbvh reads from pyopencl arrays
     add(rays.DEVICE_KERNEL_FILE, {})

@@ -101,6 +101,8 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
                 bvh.occluded(o, d, triangle_test=test, counters=counters)
         bvh.closest_points(o)
         bvh.overlapping(o, o + np.float32(0.1))
+        bvh.intersect(o, d, order="global", counters=True)
+        bvh.intersect(o, d, order="global", triangle_test="moller")
         bvh.count_hits(o, d)
         bvh.all_hits(o, d, max_hits=2)
         bvh.signed_distance(o)
@@ -117,6 +119,7 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
                                   builder="x", device=ctx)
     assert not binary.wide_records(max_bytes=0).packed
     binary.intersect(o, d)
+    binary.intersect(o, d, order="global")
     binary.occluded(o, d, counters=True)
     # Rays in pyopencl arrays: float32 in place, every other element type converted,
     # counters split, a bad ray turned into a miss.

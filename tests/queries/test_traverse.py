@@ -278,6 +278,37 @@ def test_any_hit_agrees_with_closest_hit(name):
         assert occ.dtype == bool and (occ == closest.hit).all()
 
 
+@pytest.mark.parametrize("kind", ["lbvh30", "lbvh_collapse", "sah", "host_median"])
+@pytest.mark.parametrize("name", sorted(SCENES))
+def test_global_order_gives_the_same_hits(name, kind):
+    """order="global" (nearest pending node first, Kay & Kajiya) against the oracle, and
+    against the ordered traversal: the same t on every ray, the same triangle but for ties."""
+    v, f = scene(name)
+    o, d = ray_set(name)
+    bvh = tree(name, kind)
+    got = bvh.intersect(o, d, order="global", counters=True)
+    assert got.overflow_count == 0
+    assert_matches_oracle(v, f, o, d, got, oracle(name))
+    ordered = bvh.intersect(o, d, counters=True)
+    assert np.array_equal(got.t, ordered.t)
+    tie = got.prim != ordered.prim
+    if tie.any():
+        t_other, _, _ = hits_on(v, f, o[tie], d[tie], ordered.prim[tie])
+        assert np.allclose(t_other, got.t[tie], rtol=1e-6, atol=0)
+    # best first never tests more triangles than it must: a node is entered only when no
+    # pending node is nearer, so it enters no node that the ordered walk skips for good
+    assert got.tris_tested.sum() <= ordered.tris_tested.sum() * 1.05 + 10
+
+
+def test_global_order_overflow_is_flagged():
+    bvh, v, f = chain_tree(40)
+    o = np.float32([[41, 0, 0.5]] * 2)
+    d = np.float32([[-1, 0, 0]] * 2)
+    assert bvh.intersect(o, d, order="global").overflow_count == 0
+    small = bvh.intersect(o, d, order="global", stack_size=4)
+    assert small.overflow.all()
+
+
 def test_any_hit_returns_a_real_hit_and_overflow_info():
     v, f = scene("teapot")
     o, d = ray_set("teapot")
@@ -576,7 +607,7 @@ def test_bad_rays_raise_value_error_naming_the_first(bad, message):
 
 @pytest.mark.parametrize("option, message", [
     (dict(triangle_test="fast"), "triangle_test"), (dict(batch_size=0), "batch_size"),
-    (dict(stack_size=0), "stack_size")])
+    (dict(stack_size=0), "stack_size"), (dict(order="random"), "order: 'random'")])
 def test_bad_options_raise_value_error(option, message):
     bvh = tree("cornell", "lbvh30")
     with pytest.raises(ValueError, match=message):
