@@ -30,7 +30,7 @@ LAYERS = [
     ("lbvh.queries", 5),
     ("lbvh.bvh", 6),
     ("lbvh.api", 7),
-    ("lbvh.verification", 8), ("lbvh.rendering", 8),
+    ("lbvh.verification", 8), ("lbvh.rendering", 8), ("lbvh.trimesh", 8),
     ("lbvh.cli", 9),
     ("lbvh", 10),
 ]
