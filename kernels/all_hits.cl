@@ -21,6 +21,10 @@
  *   STACK_SIZE=n  stack entries; a push beyond n sets FLAG_OVERFLOW and skips
  *                 that subtree (the host sizes it from the tree's depth).
  *   COUNT=0|1     the pass.
+ *   COUNTERS=1    (with COUNT=1) also write per ray the internal nodes and the
+ *                 leaves entered and the triangles tested: with tmax at the
+ *                 closest hit, the work any traversal must do for that ray
+ *                 (the ray-sampled cost of lbvh/verification/quality.py).
  *   SLAB_PAD, NO_FP64: kernels/ray_triangle.h.
  */
 #include "common.h"
@@ -30,6 +34,12 @@
 #endif
 #ifndef COUNT
 #define COUNT 1
+#endif
+#ifndef COUNTERS
+#define COUNTERS 0
+#endif
+#if COUNTERS && !COUNT
+#error "COUNTERS goes with the counting pass"
 #endif
 #if defined(TRIANGLE_TEST) && TRIANGLE_TEST != 0
 #error "all_hits.cl counts crossings with the watertight test only"
@@ -49,7 +59,7 @@ __kernel void all_hits(__global const float4 *nodes, __global const int *prim_or
                        const int interval_stride, const int count,
                        __global const long *offsets, __global int *counts,
                        __global float *out_t, __global float *out_u, __global float *out_v,
-                       __global int *out_prim, __global int *flags) {
+                       __global int *out_prim, __global int *flags, __global int4 *work) {
     const int i = get_global_id(0);
     if (i >= count) return;
     Ray ray;
@@ -68,7 +78,7 @@ __kernel void all_hits(__global const float4 *nodes, __global const int *prim_or
     int node = !nan_ray && slab((__global const float *)(nodes + 2 * root), &ray, ray.tmax,
                                 &entry, &leave) ? root : -1;
     int stack[STACK_SIZE];
-    int top = 0, visits = 0;
+    int top = 0, visits = 0, leaves = 0, tested = 0;
     for (;;) {
         if (node >= 0) {
             if (++visits > num_nodes) {
@@ -77,6 +87,8 @@ __kernel void all_hits(__global const float4 *nodes, __global const int *prim_or
             }
             const int a = as_int(nodes[2 * node].w), b = as_int(nodes[2 * node + 1].w);
             if (node_is_leaf(b)) {
+                ++leaves;
+                tested -= b;
                 for (int s = a; s < a - b; ++s) {
                     float t = INFINITY, u = 0.0f, v = 0.0f;
                     if (!hit_triangle(vertices, 3 * (int)slot_faces[3 * s],
@@ -127,6 +139,9 @@ __kernel void all_hits(__global const float4 *nodes, __global const int *prim_or
     }
 #if COUNT
     counts[i] = found;
+#endif
+#if COUNTERS
+    work[i] = (int4)(visits - leaves, leaves, tested, 0);
 #endif
     flags[i] = flag;
 }

@@ -36,7 +36,7 @@ from .traverse import FLAG_OVERFLOW, FLAG_VISIT_LIMIT, slab_pad, stack_bucket
 
 KERNEL_FILE = "all_hits.cl"
 
-__all__ = ["AllHits", "count_hits", "all_hits", "DEFAULT_BATCH"]
+__all__ = ["AllHits", "count_hits", "all_hits", "segment_work", "DEFAULT_BATCH"]
 
 #: Rays per kernel launch unless ``batch_size`` says otherwise.
 DEFAULT_BATCH = 1 << 18
@@ -198,6 +198,22 @@ def all_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0
                    overflow, int(overflow.sum()), invalid)
 
 
+@dev.serialised
+def segment_work(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
+                 tmax: Any = np.inf, *, batch_size: int = DEFAULT_BATCH) -> np.ndarray:
+    """``int32 (N, 3)``: for each ray, the internal nodes and the leaves whose boxes its
+    segment ``[tmin, tmax]`` enters (the slab test of the traversal) and the triangles of
+    those leaves. With ``tmax`` at the closest hit this is the work every traversal of
+    this tree must do for the ray, whatever its order: what the ray-sampled cost
+    (:func:`lbvh.verification.quality.ray_sampled_cost`) weighs."""
+    batch = _check_batch(batch_size)
+    rays = _rays(origins, directions, tmin, tmax, "raise")
+    work = np.zeros((len(rays), 4), np.int32)
+    flags = _run(target, rays, batch, None, work)[1]
+    _raise_on_overflow(flags, "segment_work")
+    return work[:, :3].copy()
+
+
 def _raise_on_overflow(flags: np.ndarray, name: str) -> None:
     bad = (flags & (FLAG_OVERFLOW | FLAG_VISIT_LIMIT)) != 0
     if bad.any():
@@ -206,10 +222,12 @@ def _raise_on_overflow(flags: np.ndarray, name: str) -> None:
                            "the kernel's stack")
 
 
-def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None):
+def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None,
+         work: np.ndarray | None = None):
     """Count (``cap`` None) or collect (``cap`` -1: all, else at most ``cap`` per ray)
     the hits of every good ray, batch by batch. Returns ``(total, flags)`` and, when
-    collecting, ``(t, prim, u, v)`` in ray order (unsorted within a ray)."""
+    collecting, ``(t, prim, u, v)`` in ray order (unsorted within a ray). ``work``
+    (``int32 (N, 4)``, counting only) receives the counters of kernels/all_hits.cl."""
     n = len(rays)
     total = np.zeros(n, np.int64)
     flags = np.zeros(n, np.int32)
@@ -232,6 +250,8 @@ def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None):
                 "hi": mem.upload(np.ascontiguousarray(part.tmax)),
                 "counts": mem.alloc(4 * m), "flags": mem.alloc(4 * m),
                 "offsets": mem.alloc(8 * (m + 1))}
+        if work is not None:
+            bufs["work"] = mem.alloc(16 * m)
         out: list[cl.Buffer] = []
         launch = dev.Launch(m, 1, -(-m // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
         args = (tree.nodes, tree.prim_order, target.mesh.vertices_buf, target.slot_faces(),
@@ -240,8 +260,11 @@ def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None):
         try:
             dev.run(ctx, KERNEL_FILE, "all_hits", launch, *args, bufs["counts"], bufs["flags"],
                     bufs["flags"], bufs["flags"], bufs["flags"], bufs["flags"],
-                    defines={**base, "COUNT": 1})
+                    bufs.get("work", bufs["flags"]),
+                    defines={**base, "COUNT": 1, **({"COUNTERS": 1} if work is not None else {})})
             counts = dev.from_device(ctx, bufs["counts"], np.int32, (m,))
+            if work is not None:
+                work[good[start:stop]] = dev.from_device(ctx, bufs["work"], np.int32, (m, 4))
             total[good[start:stop]] = counts
             if cap is not None:
                 keep = counts if cap < 0 else np.minimum(counts, cap)
@@ -254,7 +277,7 @@ def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None):
                     out = [mem.alloc(4 * size) for _ in range(4)]
                     cl.enqueue_copy(ctx.queue, bufs["offsets"], offsets)
                     dev.run(ctx, KERNEL_FILE, "all_hits", launch, *args, bufs["counts"],
-                            out[0], out[2], out[3], out[1], bufs["flags"],
+                            out[0], out[2], out[3], out[1], bufs["flags"], bufs["flags"],
                             defines={**base, "COUNT": 0})
                     for col, buf in zip(cols, out):
                         cl.enqueue_copy(ctx.queue, col, buf, is_blocking=False)

@@ -37,6 +37,7 @@ import numpy as np
 import pytest
 
 import lbvh
+from lbvh.queries.all_hits import segment_work
 from lbvh.api import collapse_leaves
 from lbvh.device import sort
 from lbvh.queries import closest, ray_order
@@ -105,6 +106,7 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
         bvh.intersect(o, d, order="global", triangle_test="moller")
         bvh.count_hits(o, d)
         bvh.all_hits(o, d, max_hits=2)
+        segment_work(bvh, o, d)
         bvh.signed_distance(o)
         bvh.refit(v * np.float32(1.25) if len(bvh.vertices) == len(v) else bvh.vertices * 2)
         bvh.intersect(o, d)
