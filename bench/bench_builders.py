@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Every builder on every scene: which BVH is best, and for how many rays? (issue 4)
+"""Every builder on every scene: which BVH is best, and for how many rays? (issues 4, 20)
 
     .venv/bin/python bench/bench_builders.py [--quick] [--scenes bunny,sponza ...]
         [--rays 512x384] [--repeats 3] [--out bench/out] [--no-peers]
@@ -9,17 +9,25 @@ rounds that run every builder once, so that the machine's noise hits all alike):
 
 * the build: wall time from host arrays to a tree on the device (mesh
   validation, upload and, for the SAH reference, the host build and the tree
-  upload included), median of ``--repeats`` builds; a builder stops repeating
-  once its builds have taken ``--build-budget`` seconds (the serial SAH on 1M
-  triangles is built once);
+  upload included; likewise for the median and midpoint host builds), median
+  of ``--repeats`` builds; a builder stops repeating once its builds have taken
+  ``--build-budget`` seconds (the serial SAH on 1M triangles is built once);
 * the render: closest-hit traversal of one fixed set of primary rays (one per
   pixel of the scene's camera from ``lbvh/data/cameras.json``), median wall time
   of ``lbvh.queries.traverse.intersect`` (ray packing, transfers and read-back
-  included, counters off), hence rays per second;
+  included, counters off), hence rays per second; for each of our trees, in the
+  same rounds, also the global-order traversal (``order="global"``: the nearest
+  pending node of all first, from a heap; Kay & Kajiya 1986);
 * the tree: SAH cost normalised by the root area (``lbvh.verification.quality.sah_cost``,
   C_node = C_tri = 1) and its ratio to the serial SAH tree's; depth, nodes,
-  leaves, memory; the traversal counters of the same rays: mean nodes visited
-  and triangles tested per ray, and their sum relative to the SAH tree's;
+  leaves, memory; the sampled EPO (end-point overlap, Aila, Karras & Laine
+  2013; ``tree_quality``, 32K surface samples); the ray-sampled cost of the same
+  primary rays (``lbvh.verification.ray_cost.ray_sampled_cost``: the inner nodes
+  and leaf triangles each ray's segment up to its closest hit enters); the
+  traversal counters of the same rays: mean nodes visited and triangles tested
+  per ray, and their sum relative to the SAH tree's, for the ordered and the
+  global-order traversal, with the fraction of rays whose ``t`` the two give
+  identically and the global order's stack (heap) overflows;
 * hit agreement with the reference (the SAH tree's hits, same kernel): the
   fraction of rays with the same hit or miss, the same primitive and ``t``
   within the float32 bound :func:`lbvh.verification.error_bound.t_bound`,
@@ -28,18 +36,26 @@ rounds that run every builder once, so that the machine's noise hits all alike):
   triangles meeting the ray at one point);
 * break-even ray counts: ``build_a + n cost_a = build_b + n cost_b``, against
   the fastest build of the scene and against the SAH reference, and the lower
-  envelope ("which builder for how many rays") over all builders.
+  envelope ("which builder for how many rays") over all builders;
+* which cost metric predicts the render time: Spearman's rank correlation
+  (:func:`spearman`, ties as average ranks) between each metric (SAH cost, EPO,
+  ray-sampled cost, measured nodes and triangles per ray) and the render time,
+  over our trees within each scene, and its mean over the scenes.
 
 Builders: the device LBVH with 30-bit, 63-bit and automatic Morton keys, each
-without and with the SAH leaf collapse (``max_leaf_size`` 8), the serial SAH
-reference, and as peers when installed Embree (embreex) and warp-lang's CPU
+without and with the SAH leaf collapse (``max_leaf_size`` 8), automatic keys
+with treelet restructuring (without and with the collapse), the host top-down
+median and midpoint splits (``lbvh/builders/topdown.py``, leaves of one
+triangle), the serial SAH reference, and as peers when installed Embree (embreex) and warp-lang's CPU
 mesh constructors. The peers' trees are not visible: they get a build time, a
-render time through their own traversal, and hit agreement, no tree figures.
+render time through their own traversal, and hit agreement, no tree figures
+(and no place in the correlation or traversal-order tables).
 Embree's build is the scene commit (the copy into its scene is reported as
 ``setup``); warp traces with ``wp.mesh_query_ray`` in a CPU kernel (one thread).
 
 Outputs in ``--out``: ``bench_builders.json`` (every figure, the machine and
-the OpenCL device), ``bench_builders.md`` (also printed), ``bench_builders.png``
+the OpenCL device), ``bench_builders.md`` (also printed: the table, the metric
+correlations, ordered against global traversal, which builder for how many rays), ``bench_builders.png``
 (speed against error, needs matplotlib) and ``views/<scene>.png`` (what the
 camera sees). Progress goes to stderr.
 
@@ -72,7 +88,8 @@ from lbvh.builders.cost import C_NODE, C_TRI, MAX_LEAF_SIZE
 from lbvh.queries.traverse import intersect
 from lbvh.verification import meshes
 from lbvh.verification.error_bound import t_bound
-from lbvh.verification.quality import tree_quality
+from lbvh.verification.quality import EPO_SAMPLES, tree_quality
+from lbvh.verification.ray_cost import ray_sampled_cost
 
 FULL_SCENES = ("bunny", "sponza", "sibenik", "conference", "soup-1m", "terrain-1m")
 QUICK_SCENES = ("teapot",)
@@ -83,6 +100,9 @@ QUICK_RAYS = (128, 96)
 CHART_RAYS = 10_000_000
 
 REFERENCE = "sah"
+#: Families of our trees (traced by our kernel): the device LBVH, the host top-down
+#: median / midpoint splits and the SAH reference.
+OUR_FAMILIES = ("lbvh", "topdown", "sah")
 #: Cost constants of the collapse and of the SAH reference (the same for both).
 SAH_OPTIONS = {"c_node": C_NODE, "c_tri": C_TRI, "max_leaf_size": MAX_LEAF_SIZE}
 
@@ -93,9 +113,15 @@ SAH_OPTIONS = {"c_node": C_NODE, "c_tri": C_TRI, "max_leaf_size": MAX_LEAF_SIZE}
 TREELET_ROUNDS = 2
 
 
+def ours(variant: Variant) -> bool:
+    """One of our trees (:data:`OUR_FAMILIES`), traced by our kernel, with tree figures."""
+    return variant.family in OUR_FAMILIES
+
+
 def our_variants() -> list[Variant]:
     """The device LBVH (3 key widths x with/without collapse), the automatic width with
-    treelet restructuring (with/without collapse) and the SAH reference."""
+    treelet restructuring (with/without collapse), the host median and midpoint splits
+    (leaves of one triangle, their default) and the SAH reference."""
     out = []
     for bits in (30, 63, "auto"):
         out.append(Variant(f"lbvh-{bits}", "lbvh", {"key_bits": bits}))
@@ -105,6 +131,8 @@ def our_variants() -> list[Variant]:
     out.append(Variant(f"lbvh-auto+treelets{TREELET_ROUNDS}", "lbvh", treelets))
     out.append(Variant(f"lbvh-auto+treelets{TREELET_ROUNDS}+collapse", "lbvh",
                        {**treelets, "collapse": True, **SAH_OPTIONS}))
+    for rule in ("median", "midpoint"):
+        out.append(Variant(rule, "topdown", {"builder": rule}))
     out.append(Variant(REFERENCE, "sah", {"builder": "sah", **SAH_OPTIONS}))
     return out
 
@@ -130,8 +158,9 @@ class Ours:
         bvh = lbvh.build(vertices, faces, device=self.ctx, **options)
         return 0.0, time.perf_counter() - t0, bvh
 
-    def trace(self, bvh: lbvh.BVH, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        hits = intersect(bvh, origins, directions)
+    def trace(self, bvh: lbvh.BVH, origins: np.ndarray, directions: np.ndarray,
+              order: str = "ordered") -> tuple[np.ndarray, np.ndarray]:
+        hits = intersect(bvh, origins, directions, order=order)
         return hits.t, hits.prim
 
 
@@ -152,6 +181,7 @@ class Contestant:
     build_cpu: list[float] = field(default_factory=list)
     render: list[float] = field(default_factory=list)
     render_cpu: list[float] = field(default_factory=list)
+    render_global: list[float] = field(default_factory=list)   # ours: order="global"
     handle: Any = None
     t: np.ndarray | None = None
     prim: np.ndarray | None = None
@@ -170,22 +200,29 @@ class Contestant:
         self.t, self.prim = self.builder.trace(self.handle, origins, directions)
         self.render.append(time.perf_counter() - t0)
         self.render_cpu.append(time.process_time() - c0)
+        if ours(self.variant):          # the same round: the pair shares the machine's noise
+            t0 = time.perf_counter()
+            self.builder.trace(self.handle, origins, directions, order="global")
+            self.render_global.append(time.perf_counter() - t0)
 
 
 ROW_FIELDS = ("scene", "builder", "family", "options", "triangles", "rays", "build_seconds",
               "build", "render_seconds", "render", "rays_per_second", "seconds_per_ray",
-              "sah_cost", "sah_ratio", "nodes_per_ray", "tris_per_ray", "traversal_cost_per_ray",
-              "traversal_ratio", "hit_fraction", "overflow_count", "agreement",
-              "break_even_vs_fastest", "break_even_vs_reference", "tree", "null_reasons")
+              "sah_cost", "sah_ratio", "epo", "ray_cost", "nodes_per_ray", "tris_per_ray",
+              "traversal_cost_per_ray", "traversal_ratio", "hit_fraction", "overflow_count",
+              "agreement", "global_order", "break_even_vs_fastest", "break_even_vs_reference",
+              "tree", "null_reasons")
 
 PEER_NULLS = {name: "peer: its tree is not visible" for name in
-              ("sah_cost", "sah_ratio", "nodes_per_ray", "tris_per_ray", "traversal_cost_per_ray",
-               "traversal_ratio", "overflow_count", "tree")}
+              ("sah_cost", "sah_ratio", "epo", "ray_cost", "nodes_per_ray", "tris_per_ray",
+               "traversal_cost_per_ray", "traversal_ratio", "overflow_count", "global_order",
+               "tree")}
 
 
 def tree_figures(bvh: lbvh.BVH) -> dict:
-    """Depth, nodes, leaves, memory and SAH cost of one of our trees."""
-    q = tree_quality(bvh, C_NODE, C_TRI, epo=False)
+    """Depth, nodes, leaves, memory, SAH cost and sampled EPO (``epo``, ``epo_stderr``,
+    ``epo_samples``) of one of our trees."""
+    q = tree_quality(bvh, C_NODE, C_TRI, epo=True, epo_samples=EPO_SAMPLES)
     report = bvh.report()
     q["leaf_size_histogram"] = {str(k): int(v) for k, v in q["leaf_size_histogram"].items()}
     q["key_bits"] = report.key_bits   # code bits used: 30 or 63
@@ -212,17 +249,42 @@ def base_row(scene: Scene, c: Contestant, rays: int) -> dict:
 
 
 def our_row(scene: Scene, c: Contestant, origins: np.ndarray, directions: np.ndarray) -> dict:
-    """Tree figures and traversal counters of one of our trees (hits from the counted run)."""
+    """Tree figures, EPO, ray-sampled cost and the traversal counters of one of our
+    trees, ordered and global order (hits from the ordered counted run)."""
     row = base_row(scene, c, len(origins))
     bvh = c.handle
     hits = intersect(bvh, origins, directions, counters=True)
     c.t, c.prim = hits.t, hits.prim
     tree = tree_figures(bvh)
+    rc = ray_sampled_cost(bvh, origins, directions, c_node=C_NODE, c_tri=C_TRI)
     nodes, tris = float(hits.nodes_visited.mean()), float(hits.tris_tested.mean())
-    row.update(sah_cost=tree["sah_cost"], nodes_per_ray=nodes, tris_per_ray=tris,
+    row.update(sah_cost=tree["sah_cost"], epo=tree["epo"], ray_cost=rc.cost,
+               nodes_per_ray=nodes, tris_per_ray=tris,
                traversal_cost_per_ray=C_NODE * nodes + C_TRI * tris,
                overflow_count=int(hits.overflow_count), tree=tree)
+    tree["ray_cost"] = {"cost": rc.cost, "inner": rc.inner, "leaves": rc.leaves,
+                        "triangles": rc.triangles, "rays": rc.rays}
+    row["global_order"] = global_order_figures(c, hits, bvh, origins, directions)
     return row
+
+
+def global_order_figures(c: Contestant, ordered: Any, bvh: lbvh.BVH, origins: np.ndarray,
+                         directions: np.ndarray) -> dict:
+    """The global-order traversal of the tree against the ordered one (``ordered``: its
+    counted hits): speed, counters, their ratios and the rays with identical hits."""
+    g = intersect(bvh, origins, directions, counters=True, order="global")
+    rays = len(origins)
+    render_s = median(c.render_global)
+    nodes, tris = float(g.nodes_visited.mean()), float(g.tris_tested.mean())
+    o_nodes, o_tris = float(ordered.nodes_visited.mean()), float(ordered.tris_tested.mean())
+    paired = [gs / os for gs, os in zip(c.render_global, c.render)]   # same round
+    return {"render_seconds": render_s, "samples": c.render_global, "rays_per_second": rays / render_s,
+            "time_ratio": median(paired), "nodes_per_ray": nodes, "tris_per_ray": tris,
+            "nodes_ratio": nodes / o_nodes if o_nodes else None,
+            "tris_ratio": tris / o_tris if o_tris else None,
+            "overflow_count": int(g.overflow_count),
+            "same_t": float(np.mean(g.t == ordered.t)) if rays else 1.0,
+            "same_prim": float(np.mean(g.prim == ordered.prim)) if rays else 1.0}
 
 
 def peer_row(scene: Scene, c: Contestant, rays: int) -> dict:
@@ -291,8 +353,8 @@ def compare_within_scene(scene: Scene, contestants: list[Contestant], rows: list
     ref, ref_row = contestants[i_ref], rows[i_ref]
     bound = t_bound(scene.vertices, scene.faces, origins, directions, ref.t, ref.prim,
                     cos_floor=AGREEMENT_COS_FLOOR)
-    ours = [r for r in rows if r["family"] in ("lbvh", "sah")]
-    fastest = min(ours, key=lambda r: r["build_seconds"])
+    mine = [r for r in rows if r["family"] in OUR_FAMILIES]
+    fastest = min(mine, key=lambda r: r["build_seconds"])
     for c, row in zip(contestants, rows):
         row["agreement"] = agreement(c.t, c.prim, ref.t, ref.prim, bound)
         if row["sah_cost"] is not None:
@@ -300,7 +362,7 @@ def compare_within_scene(scene: Scene, contestants: list[Contestant], rows: list
             row["traversal_ratio"] = row["traversal_cost_per_ray"] / ref_row["traversal_cost_per_ray"]
         row["break_even_vs_fastest"] = crossing(row, fastest)
         row["break_even_vs_reference"] = crossing(row, ref_row)
-    return {"fastest_build": fastest["builder"], "best_by_rays_ours": lower_envelope(ours),
+    return {"fastest_build": fastest["builder"], "best_by_rays_ours": lower_envelope(mine),
             "best_by_rays": lower_envelope(rows)}
 
 
@@ -309,10 +371,12 @@ def compare_within_scene(scene: Scene, contestants: list[Contestant], rows: list
 def warm_up(ctx: dev.Context, variants: list[Variant]) -> None:
     """Compile every device program once, outside any timing (a small mesh, one ray)."""
     v, f = meshes.sphere(2000)
+    o, d = np.zeros((1, 3), np.float32), np.float32([[0.0, 0.0, 1.0]])
     for variant in variants:
         if variant.family == "lbvh":
             bvh = build_tree(variant, v, f, ctx)
-            intersect(bvh, np.zeros((1, 3), np.float32), np.float32([[0.0, 0.0, 1.0]]))
+            for order in ("ordered", "global"):
+                intersect(bvh, o, d, order=order)
 
 
 def steps_per_scene(repeats: int) -> int:
@@ -330,17 +394,18 @@ def bench_scene(scene: Scene, contestants: list[Contestant], settings: Settings,
                        progress, "build")
     for c in contestants:
         progress.note(f"{c.variant.name} validate, warm up")
-        if c.variant.ours:
-            c.handle.validate()
         c.builder.trace(c.handle, origins[:1], directions[:1])   # compiles the trace kernel
+        if ours(c.variant):
+            c.handle.validate()
+            c.builder.trace(c.handle, origins[:1], directions[:1], order="global")
     progress.advance()
     interleaved_rounds(contestants, settings.repeats, settings.render_budget,
-                       lambda c: sum(c.render), lambda c: c.run_render(origins, directions),
-                       progress, "render")
+                       lambda c: sum(c.render) + sum(c.render_global),
+                       lambda c: c.run_render(origins, directions), progress, "render")
     rows = []
     for c in contestants:
-        progress.note(f"{c.variant.name} counters")
-        rows.append(our_row(scene, c, origins, directions) if c.variant.ours
+        progress.note(f"{c.variant.name} counters, EPO, ray cost")
+        rows.append(our_row(scene, c, origins, directions) if ours(c.variant)
                     else peer_row(scene, c, len(origins)))
     progress.advance()
     summary = compare_within_scene(scene, contestants, rows, origins, directions)
@@ -353,6 +418,81 @@ def bench_scene(scene: Scene, contestants: list[Contestant], settings: Settings,
                    vertices=len(scene.vertices), camera=scene.camera.as_dict(),
                    rays=len(origins), hit_fraction=float((ref.prim >= 0).mean()))
     return summary, rows
+
+
+# -- which cost metric predicts the render time -----------------------------------------
+
+#: The metrics ranked against the render time: row field -> column title. The first
+#: three are figures of the tree (SAH and EPO need no rays; the ray-sampled cost needs
+#: the rays but not the traversal order); the last three are the ordered traversal's
+#: own counters.
+METRICS = {"sah_cost": "SAH cost", "epo": "EPO", "ray_cost": "ray-sampled cost",
+           "nodes_per_ray": "nodes/ray", "tris_per_ray": "tris/ray",
+           "traversal_cost_per_ray": "nodes + tris/ray"}
+#: The metrics that are figures of the tree, not counters of the render itself.
+TREE_METRICS = ("sah_cost", "epo", "ray_cost")
+
+
+def average_ranks(values: Any) -> np.ndarray:
+    """Ranks 1..n of ``values``, ties sharing the mean of the ranks they span."""
+    x = np.asarray(values, np.float64)
+    order = np.argsort(x, kind="stable")
+    ranks = np.empty(len(x), np.float64)
+    sorted_x = x[order]
+    start = 0
+    for end in range(1, len(x) + 1):
+        if end == len(x) or sorted_x[end] != sorted_x[start]:
+            ranks[order[start:end]] = (start + end + 1) / 2    # mean of ranks start+1 .. end
+            start = end
+    return ranks
+
+
+def spearman(x: Any, y: Any) -> float | None:
+    """Spearman's rank correlation of ``x`` and ``y``: the Pearson correlation of their
+    average ranks (ties shared); ``None`` for fewer than 3 pairs or a constant side."""
+    if len(x) != len(y):
+        raise ValueError(f"spearman: {len(x)} values against {len(y)}")
+    if len(x) < 3:
+        return None
+    rx, ry = average_ranks(x), average_ranks(y)
+    rx, ry = rx - rx.mean(), ry - ry.mean()
+    norm = math.sqrt(float(rx @ rx) * float(ry @ ry))
+    if norm == 0:
+        return None
+    return max(-1.0, min(1.0, float(rx @ ry) / norm))
+
+
+def metric_correlation(rows: list[dict]) -> dict:
+    """For each metric (:data:`METRICS`), Spearman's rho between it and the measured
+    render time over our trees, per scene and its mean over the scenes; ``best``: the
+    metric with the highest mean rho, ``best_tree_metric`` the same among
+    :data:`TREE_METRICS`. Peers (no tree) are left out."""
+    per_scene: dict[str, dict[str, float | None]] = {}
+    trees: dict[str, int] = {}
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        mine = [r for r in rows if r["scene"] == scene and r["family"] in OUR_FAMILIES]
+        trees[scene] = len(mine)
+        render = [r["render_seconds"] for r in mine]
+        per_scene[scene] = {m: spearman([r[m] for r in mine], render) for m in METRICS}
+    mean: dict[str, float | None] = {}
+    for m in METRICS:
+        values = [rhos[m] for rhos in per_scene.values() if rhos[m] is not None]
+        mean[m] = float(np.mean(values)) if values else None
+
+    return {"against": "render_seconds", "method": "Spearman, ties as average ranks",
+            "metrics": dict(METRICS), "trees": trees, "per_scene": per_scene, "mean": mean,
+            "best": best_metrics(mean, tuple(METRICS)),
+            "best_tree_metric": best_metrics(mean, TREE_METRICS)}
+
+
+def best_metrics(mean: dict[str, float | None], names: tuple[str, ...]) -> list[str]:
+    """The metrics among ``names`` with the highest mean rho (several when tied within
+    1e-9), in the order of ``names``; empty when none has a rho."""
+    ranked = [m for m in names if mean[m] is not None]
+    if not ranked:
+        return []
+    top = max(mean[m] for m in ranked)
+    return [m for m in ranked if mean[m] >= top - 1e-9]
 
 
 # -- aggregate, Markdown, chart ----------------------------------------------------
@@ -422,19 +562,22 @@ def markdown(report: dict) -> str:
         f"SAH cost with C_node = C_tri = 1, normalised by the root area; reference "
         f"`{REFERENCE}` (serial full-sweep SAH, leaves up to {MAX_LEAF_SIZE}).", "",
         "| scene | tris | builder | build ms | render ms | Mrays/s | SAH cost | SAH / ref "
-        "| nodes/ray | tris/ray | trav / ref | agree | agree (ties) | break-even vs fastest "
-        "| break-even vs ref |",
-        "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| EPO | ray cost | nodes/ray | tris/ray | trav / ref | agree | agree (ties) "
+        "| break-even vs fastest | break-even vs ref |",
+        "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in report["rows"]:
         a = r["agreement"]
         lines.append(
             f"| {r['scene']} | {r['triangles']:,} | {r['builder']} | {fmt_build(r, s['repeats'])} "
             f"| {r['render_seconds'] * 1e3:.1f} | {r['rays_per_second'] / 1e6:.2f} "
-            f"| {fmt(r['sah_cost'], 4)} | {fmt(r['sah_ratio'])} | {fmt(r['nodes_per_ray'])} "
+            f"| {fmt(r['sah_cost'], 4)} | {fmt(r['sah_ratio'])} | {fmt(r['epo'], 4)} "
+            f"| {fmt(r['ray_cost'], 4)} | {fmt(r['nodes_per_ray'])} "
             f"| {fmt(r['tris_per_ray'])} | {fmt(r['traversal_ratio'])} | {a['fraction']:.4f} "
             f"| {a['fraction_with_ties']:.4f} | {fmt_break_even(r['break_even_vs_fastest'])} "
             f"| {fmt_break_even(r['break_even_vs_reference'])} |")
+    lines += correlation_lines(report["metric_correlation"])
+    lines += global_order_lines(report["rows"])
     lines += ["", "## Which builder for how many rays", "",
               "Cheapest total time (build + rays x time per ray) by ray count, "
               "among our trees (same kernel) and with the peers:", ""]
@@ -446,6 +589,78 @@ def markdown(report: dict) -> str:
         lines.append(f"- {skipped['scene']}: skipped ({skipped['reason']})")
     lines += ["", COLUMN_NOTES]
     return "\n".join(lines) + "\n"
+
+
+def fmt_rho(rho: float | None) -> str:
+    return "-" if rho is None else f"{rho:+.2f}"
+
+
+def correlation_lines(corr: dict) -> list[str]:
+    """The table "which cost metric predicts the render time" and its verdict."""
+    metrics = corr["metrics"]
+    lines = ["", "## Which cost metric predicts the render time", "",
+             "Spearman's rank correlation (ties as average ranks) between each metric and "
+             "the measured render time (ordered traversal), over our trees of each scene "
+             "(peers have no tree); +1: the metric orders the trees as their render times "
+             "do. Render differences within the noise above reorder trees at random.", "",
+             "| scene | trees | " + " | ".join(metrics.values()) + " |",
+             "|---|---:|" + "---:|" * len(metrics)]
+    for scene, rhos in corr["per_scene"].items():
+        lines.append(f"| {scene} | {corr['trees'][scene]} | "
+                     + " | ".join(fmt_rho(rhos[m]) for m in metrics) + " |")
+    if corr["per_scene"]:
+        lines.append(f"| **mean over {len(corr['per_scene'])} scene(s)** | | "
+                     + " | ".join(f"**{fmt_rho(corr['mean'][m])}**" for m in metrics) + " |")
+    lines.append("")
+    lines.append(correlation_verdict(corr))
+    return lines
+
+
+def correlation_verdict(corr: dict) -> str:
+    """Which metric ranked the trees best, from the numbers."""
+    mean, metrics = corr["mean"], corr["metrics"]
+    best_tree = corr["best_tree_metric"]
+    if not best_tree:
+        return "No metric could be ranked (fewer than 3 trees, or constant figures)."
+    names = " and ".join(f"**{metrics[m]}**" for m in best_tree)
+    tree_ranked = sorted((m for m in TREE_METRICS if mean[m] is not None), key=lambda m: -mean[m])
+    order = ", ".join(f"{metrics[m]} {fmt_rho(mean[m])}" for m in tree_ranked)
+    text = (f"Of the tree's cost metrics, {names} ranked the trees most like their render "
+            f"times{' (tied)' if len(best_tree) > 1 else ''}: mean rho {order}.")
+    counters = [m for m in METRICS if m not in TREE_METRICS and mean[m] is not None]
+    if counters:
+        top = max(counters, key=lambda m: mean[m])
+        diff = mean[top] - mean[best_tree[0]]
+        how = "better" if diff > 1e-9 else "worse" if diff < -1e-9 else "as well"
+        text += (f" The render's own counters did {how}: best {metrics[top]} "
+                 f"{fmt_rho(mean[top])}.")
+    return text
+
+
+def global_order_lines(rows: list[dict]) -> list[str]:
+    """The table "ordered against global-order traversal", our trees only."""
+    lines = ["", "## Ordered against global-order traversal", "",
+             "The same tree and rays, traced depth first with the nearest child first "
+             "(`order=\"ordered\"`, the default) and by the nearest pending node of all "
+             "from a heap (`order=\"global\"`, Kay & Kajiya 1986), in the same render rounds. "
+             "`global / ordered`: the ratio of nodes, triangles and time (median of the "
+             "rounds' paired ratios); `same t`: fraction of rays with identical `t`; "
+             "`overflow`: rays whose global-order heap overflowed (a pending node dropped: "
+             "the hit may be wrong).", "",
+             "| scene | builder | nodes/ray | tris/ray | Mrays/s | global nodes/ray "
+             "| global tris/ray | global Mrays/s | nodes g/o | tris g/o | time g/o | same t "
+             "| overflow |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        g = r["global_order"]
+        if g is None:
+            continue
+        lines.append(
+            f"| {r['scene']} | {r['builder']} | {fmt(r['nodes_per_ray'])} | {fmt(r['tris_per_ray'])} "
+            f"| {r['rays_per_second'] / 1e6:.2f} | {fmt(g['nodes_per_ray'])} | {fmt(g['tris_per_ray'])} "
+            f"| {g['rays_per_second'] / 1e6:.2f} | {fmt(g['nodes_ratio'])} | {fmt(g['tris_ratio'])} "
+            f"| {fmt(g['time_ratio'])} | {g['same_t']:.4f} | {g['overflow_count']} |")
+    return lines
 
 
 def render_spread(rows: list[dict]) -> tuple[float, float]:
@@ -462,9 +677,14 @@ def envelope_text(segments: list[dict]) -> str:
     return ", then ".join(parts)
 
 
-COLUMN_NOTES = """Columns: `build ms` host arrays to a tree on the device (peers: their own build,
-Embree's scene commit; `(1x)`: built once, the budget cut the repeats); `render ms` closest hits of the primary rays (`lbvh.queries.traverse.intersect`,
-transfers included; peers: their own traversal); `SAH / ref`, `trav / ref`: SAH cost and measured
+COLUMN_NOTES = f"""Columns: `build ms` host arrays to a tree on the device (peers: their own build,
+Embree's scene commit; `(1x)`: built once, the budget cut the repeats; `median`, `midpoint`
+and `sah` are host builds, their upload included); `render ms` closest hits of the primary rays (`lbvh.queries.traverse.intersect`,
+transfers included; peers: their own traversal); `EPO`: end-point overlap (Aila, Karras & Laine
+2013) from {EPO_SAMPLES // 1024}K surface samples (`lbvh.verification.quality.tree_quality`; standard error in the
+JSON); `ray cost`: ray-sampled cost of all the primary rays, inner nodes + leaf triangles their
+segments up to the closest hit enter (`lbvh.verification.ray_cost.ray_sampled_cost`, the SAH
+cost's units); `SAH / ref`, `trav / ref`: SAH cost and measured
 nodes + triangles per ray over the reference's; `agree`: fraction of rays with the reference's
 hit or miss, primitive and t (within 16 u (t + s) / max(|cos|, 1e-3)); `agree (ties)` also
 accepts another primitive at the same t; break-even: `n → b`: past n rays, b (the faster
@@ -486,10 +706,21 @@ def pareto_front(points: list[tuple[float, float]]) -> list[tuple[float, float]]
 PEER_LINES = ("-", "--", ":", "-.", (0, (5, 1, 1, 1)))
 
 
+#: Colour and marker of the builders that are not LBVH variants.
+HOST_STYLES = {"median": ("C5", "^"), "midpoint": ("C6", "v"), REFERENCE: ("C3", "*")}
+
+
 def point_style(name: str, family: str) -> dict:
-    """Colour by key width (sah red), filled square with the leaf collapse."""
-    colour = {"30": "C0", "63": "C1", "auto": "C2"}.get(name.split("-")[-1].split("+")[0], "C3")
-    return {"color": colour, "marker": "s" if "collapse" in name else "o", "s": 50, "zorder": 3}
+    """LBVH: colour by key width, circle, square with the leaf collapse, diamond with
+    treelets (plus with treelets and collapse); median, midpoint, sah: a colour and a
+    triangle or star of their own."""
+    if family == "lbvh":
+        colour = {"30": "C0", "63": "C1", "auto": "C2"}.get(name.split("-")[-1].split("+")[0], "C7")
+        marker = ("P" if "collapse" in name else "D") if "treelets" in name else \
+            ("s" if "collapse" in name else "o")
+    else:
+        colour, marker = HOST_STYLES.get(name, ("C8", "X"))
+    return {"color": colour, "marker": marker, "s": 110 if marker == "*" else 50, "zorder": 3}
 
 
 def chart(report: dict, path: Path) -> str | None:
@@ -572,7 +803,7 @@ def main(argv: list[str] | None = None) -> dict:
     command = command_line("bench_builders.py", argv)
     ctx = dev.get_context(args.device)
     peers, peer_status = load_peers(not args.no_peers)
-    builders = {"lbvh": Ours(ctx), "sah": Ours(ctx), **peers}
+    builders = {**{family: Ours(ctx) for family in OUR_FAMILIES}, **peers}
     variants = our_variants() + [v for peer in peers.values() for v in peer.variants()]
     settings = Settings(args.repeats, args.build_budget, args.build_budget)
     cameras = load_cameras()
@@ -601,6 +832,7 @@ def main(argv: list[str] | None = None) -> dict:
                      "t_bound": AGREEMENT_T_BOUND},
         "scenes": scenes, "skipped": skipped, "rows": rows,
         "aggregate": aggregate(rows, args.chart_rays) if rows else {},
+        "metric_correlation": metric_correlation(rows),
         "cpu_use": {what: geomean([r[what]["cpu_over_wall"] for r in rows if r["family"] == "lbvh"]) or 0.0
                     for what in ("build", "render")},
     }

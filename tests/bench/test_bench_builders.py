@@ -1,6 +1,6 @@
 """The builders bench (bench/bench_builders.py): its quick mode end to end, its
-break-even and agreement arithmetic, and the claim its agreement column rests on:
-every builder's tree, traced by the same kernel, returns the same hits."""
+break-even, agreement and rank-correlation arithmetic, and the claim its agreement
+column rests on: every builder's tree, traced by the same kernel, returns the same hits."""
 from __future__ import annotations
 
 import importlib.util
@@ -56,6 +56,7 @@ def test_quick_json_has_every_field_for_every_scene_and_builder(quick):
     machine = data["machine"]
     assert machine["cpu"] and machine["cores"] >= 1 and machine["opencl_device"]
     expected = {v.name for v in bench.our_variants()}
+    assert {"median", "midpoint", bench.REFERENCE} <= expected
     if _importable("embreex"):
         expected.add("embree")
     if _importable("warp"):
@@ -83,15 +84,21 @@ def test_quick_numbers_are_finite_and_sane(quick):
         assert 0 <= row["hit_fraction"] <= 1
         a = row["agreement"]
         assert 0 <= a["fraction"] <= a["fraction_with_ties"] <= 1
-        if row["family"] in ("lbvh", "sah"):
-            for name in ("sah_cost", "sah_ratio", "traversal_cost_per_ray", "traversal_ratio"):
+        if row["family"] in bench.OUR_FAMILIES:
+            for name in ("sah_cost", "sah_ratio", "epo", "ray_cost", "traversal_cost_per_ray",
+                         "traversal_ratio"):
                 assert _finite_positive(row[name]), (who, name, row[name])
+            assert row["tree"]["epo"] == row["epo"] and row["tree"]["epo_stderr"] >= 0
+            assert row["tree"]["ray_cost"]["rays"] == row["rays"]
+            assert row["ray_cost"] >= row["tree"]["ray_cost"]["inner"] > 0
             assert row["nodes_per_ray"] >= 1 and row["tris_per_ray"] >= 0
             assert row["overflow_count"] == 0
             assert row["tree"]["num_nodes"] >= 1 and row["tree"]["depth"] >= 0
             assert row["tree"]["key_bits"] in (30, 63, None)
             # same kernel, same triangle tests: the same closest hits up to ties
             assert a["fraction_with_ties"] == 1.0 and a["hit_miss_differ"] == 0
+    families = {r["builder"]: r["family"] for r in report["rows"]}
+    assert families["median"] == families["midpoint"] == "topdown"
     for ref in (r for r in report["rows"] if r["builder"] == bench.REFERENCE):
         assert ref["sah_ratio"] == 1.0 and ref["traversal_ratio"] == 1.0
         assert ref["agreement"]["fraction"] == 1.0
@@ -117,11 +124,65 @@ def test_quick_break_even_is_a_number_or_null_with_reason(quick):
                 assert before["to_rays"] == after["from_rays"]
 
 
+def test_quick_global_order_agrees_with_the_ordered_traversal(quick):
+    _, report = quick
+    for row in report["rows"]:
+        g = row["global_order"]
+        if row["family"] not in bench.OUR_FAMILIES:
+            assert g is None and row["null_reasons"]["global_order"]
+            continue
+        for name in ("render_seconds", "rays_per_second", "time_ratio", "nodes_per_ray",
+                     "nodes_ratio"):
+            assert _finite_positive(g[name]), (row["builder"], name, g[name])
+        assert len(g["samples"]) == len(row["render"]["samples"])
+        assert g["tris_per_ray"] >= 0
+        # the teapot's trees are shallow: no heap overflows, the same t on every ray
+        assert g["overflow_count"] == 0 and g["same_t"] == 1.0, row["builder"]
+
+
+def test_quick_correlation_table_ranks_every_metric(quick):
+    out, report = quick
+    corr = report["metric_correlation"]
+    scene = report["scenes"][0]["name"]
+    assert set(corr["metrics"]) == set(bench.METRICS)
+    assert corr["trees"][scene] == sum(r["family"] in bench.OUR_FAMILIES for r in report["rows"])
+    for metric in bench.METRICS:
+        for rho in (corr["per_scene"][scene][metric], corr["mean"][metric]):
+            assert rho is not None and -1 <= rho <= 1, (metric, rho)
+    assert corr["best_tree_metric"] and set(corr["best_tree_metric"]) <= set(bench.TREE_METRICS)
+    top = max(corr["mean"][m] for m in bench.TREE_METRICS)
+    assert all(corr["mean"][m] == pytest.approx(top) for m in corr["best_tree_metric"])
+    text = (out / "bench_builders.md").read_text()
+    table = _section(text, "## Which cost metric predicts the render time")
+    rows = [line for line in table.splitlines() if line.startswith(f"| {scene} |")]
+    assert len(rows) == 1
+    values = [float(cell) for cell in rows[0].strip("|").split("|")[2:]]
+    assert len(values) == len(bench.METRICS) and all(-1 <= v <= 1 for v in values)
+    assert f"**{corr['metrics'][corr['best_tree_metric'][0]]}** ranked the trees" in table
+
+
+def _section(text: str, heading: str) -> str:
+    """The Markdown from ``heading`` to the next heading of its level."""
+    start = text.index(heading + "\n")
+    end = text.find("\n## ", start + len(heading))
+    return text[start:end if end >= 0 else len(text)]
+
+
 def test_quick_writes_markdown_chart_and_view(quick):
     out, report = quick
     text = (out / "bench_builders.md").read_text()
     assert "| scene | tris | builder | build ms |" in text
-    assert text.count(f"| {report['scenes'][0]['name']} |") == len(report["rows"])
+    scene = report["scenes"][0]["name"]
+    main_table = text[:text.index("\n## ")]
+    assert main_table.count(f"| {scene} |") == len(report["rows"])
+    ours = [r for r in report["rows"] if r["family"] in bench.OUR_FAMILIES]
+    order_table = _section(text, "## Ordered against global-order traversal")
+    assert order_table.count(f"| {scene} |") == len(ours)
+    for builder in ("median", "midpoint"):
+        assert f"| {scene} | {builder} |" in order_table
+        line = next(x for x in main_table.splitlines() if f"| {builder} |" in x)
+        epo, ray_cost = line.strip("|").split("|")[8:10]
+        assert float(epo) > 0 and float(ray_cost) > 0, line
     assert (out / "views" / f"{report['scenes'][0]['name']}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     if not _importable("matplotlib"):
         assert report["chart_missing"]
@@ -170,6 +231,49 @@ def test_lower_envelope_picks_the_cheapest_builder_at_every_ray_count():
         for n in np.linspace(s["from_rays"], upper, 7)[1:-1]:
             best = min(lines, key=lambda r: r["build_seconds"] + n * r["seconds_per_ray"])
             assert best["builder"] == s["builder"], n
+
+
+def test_average_ranks_share_ties_and_spearman_matches_hand_values():
+    assert bench.average_ranks([3.0, 1.0, 2.0]).tolist() == [3, 1, 2]
+    assert bench.average_ranks([5, 1, 5, 5, 0]).tolist() == [4, 2, 4, 4, 1]
+    assert bench.spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)
+    assert bench.spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
+    # ties: ranks x (1, 2.5, 2.5, 4), y (1, 3, 2, 4): 4.5 / sqrt(4.5 * 5)
+    assert bench.spearman([1, 2, 2, 3], [1, 3, 2, 4]) == pytest.approx(4.5 / math.sqrt(22.5))
+    # without ties: 1 - 6 sum d^2 / (n (n^2 - 1))
+    rng = np.random.default_rng(3)
+    x, y = rng.permutation(9), rng.permutation(9)
+    d2 = float(((x - y) ** 2).sum())
+    assert bench.spearman(x, y) == pytest.approx(1 - 6 * d2 / (9 * 80))
+    assert bench.spearman([1, 1, 1], [1, 2, 3]) is None       # a constant metric ranks nothing
+    assert bench.spearman([1, 2], [1, 2]) is None
+
+
+def test_metric_correlation_names_the_metric_that_orders_the_renders():
+    def row(builder, render, sah, epo, family="lbvh", scene="s"):
+        return {"scene": scene, "builder": builder, "family": family, "render_seconds": render,
+                "sah_cost": sah, "epo": epo, "ray_cost": None if sah is None else -sah,
+                "nodes_per_ray": 1.0,
+                "tris_per_ray": render, "traversal_cost_per_ray": 1.0 + render}
+    rows = [row("a", 1.0, 10, 3), row("b", 2.0, 20, 1), row("c", 3.0, 30, 2),
+            row("d", 4.0, 40, 4, family="sah"),
+            row("peer", 0.1, None, None, family="embree")]       # no tree: left out
+    corr = bench.metric_correlation(rows)
+    assert corr["trees"] == {"s": 4}
+    rho = corr["per_scene"]["s"]
+    assert rho["sah_cost"] == pytest.approx(1) and rho["ray_cost"] == pytest.approx(-1)
+    assert rho["epo"] == pytest.approx(0.4) and rho["nodes_per_ray"] is None
+    assert corr["best_tree_metric"] == ["sah_cost"]
+    assert corr["best"] == ["sah_cost", "tris_per_ray", "traversal_cost_per_ray"]   # tied at +1
+    verdict = bench.correlation_verdict(corr)
+    assert "**SAH cost** ranked the trees" in verdict and "as well" in verdict
+
+
+def test_chart_gives_every_builder_its_own_point_style():
+    styles = {v.name: bench.point_style(v.name, v.family) for v in bench.our_variants()}
+    keys = {(s["color"], s["marker"]) for s in styles.values()}
+    assert len(keys) == len(styles)
+    assert styles["median"]["marker"] != styles["midpoint"]["marker"]
 
 
 def test_agreement_counts_ties_misses_and_t_errors():
