@@ -117,12 +117,12 @@ inline int exact_shift(float c) {
     return lowest + (biased != 0u ? (int)biased : 1) - 150 + 149;
 }
 
-/* Fills *ray (a struct passed by pointer, written in place: no value wider
- * than 32 bytes crosses a function boundary, and nothing is copied). */
-inline void make_ray(Ray *ray, __global const float *o, __global const float *d, float tmin,
-                     float tmax) {
-    ray->ox = o[0]; ray->oy = o[1]; ray->oz = o[2]; ray->tmin = tmin;
-    ray->dx = d[0]; ray->dy = d[1]; ray->dz = d[2]; ray->tmax = tmax;
+/* The constants of a ray whose ox, oy, oz, dx, dy, dz, tmin and tmax are set
+ * (make_ray reads them from the rays' arrays; kernels/instances.cl sets them
+ * to a ray moved into an instance's space). *ray is a struct passed by
+ * pointer, written in place: no value wider than 32 bytes crosses a function
+ * boundary, and nothing is copied. */
+inline void prepare_ray(Ray *ray) {
     /* A direction far from unit length (tiny or denormal components, or
      * huge ones) makes 1/d and the shear constants leave float32's range.
      * Scaling d by a power of two (and t the other way) is exact, so such a
@@ -212,6 +212,14 @@ inline void make_ray(Ray *ray, __global const float *o, __global const float *d,
     ray->nkx = as_int(dx_k) < 0;
     ray->nky = as_int(dy_k) < 0;
     ray->nkz = as_int(dz) < 0;
+}
+
+/* Fills *ray from origin o, direction d and the interval [tmin, tmax]. */
+inline void make_ray(Ray *ray, __global const float *o, __global const float *d, float tmin,
+                     float tmax) {
+    ray->ox = o[0]; ray->oy = o[1]; ray->oz = o[2]; ray->tmin = tmin;
+    ray->dx = d[0]; ray->dy = d[1]; ray->dz = d[2]; ray->tmax = tmax;
+    prepare_ray(ray);
 }
 
 /* Slab test (Kay-Kajiya) of the box record at `box`

@@ -1,8 +1,10 @@
-"""The entry points: ``lbvh.build``, ``lbvh.load`` and ``lbvh.collapse_leaves``.
+"""The entry points: ``lbvh.build``, ``lbvh.build_scene``, ``lbvh.load`` and
+``lbvh.collapse_leaves``.
 
 Each checks everything it is given (mesh, options, device) before anything
 is uploaded, runs a builder (:mod:`lbvh.builders`) and wraps the tree it
-returns in a :class:`lbvh.BVH`.
+returns in a :class:`lbvh.BVH`; a scene of several meshes (a ``trimesh.Scene``
+or a list) becomes a :class:`lbvh.Scene` of instances.
 """
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ from .bvh import SAVE_FORMAT_VERSION, BVH
 from .layout import NODE_DTYPE
 from .mesh import MissingFileError, as_mesh
 from .rendering.scene import load_mesh
+from .scene import Scene
 from .tree import Mesh
 
 
@@ -73,7 +76,8 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
 
     Returns:
         :class:`lbvh.BVH` whose buffers stay on the device. ``bvh.report()``
-        gives the phase timings and tree statistics.
+        gives the phase timings and tree statistics. Given a ``trimesh.Scene`` or a
+        list of meshes (no ``faces``): a :class:`lbvh.Scene`, see :func:`build_scene`.
 
     Raises:
         ValueError: bad mesh (NaN/inf, out-of-range indices, non-triangles, empty,
@@ -84,6 +88,9 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
              "max_leaf_size": max_leaf_size}
     fields = {**{k: v for k, v in given.items() if v is not DEFAULT}, **unknown}
     build_options, collapse_options = options_from(builder, collapse, fields, options)
+    if faces is None and (is_trimesh_scene(vertices) or isinstance(vertices, (list, tuple))):
+        return build_scene(vertices, builder=builder, device=device, collapse=collapse,
+                           options=options, progress=progress, **fields)
     if isinstance(vertices, (str, os.PathLike)):
         if faces is not None:
             raise ValueError(f"vertices: a path ({os.fspath(vertices)!r}) was passed together "
@@ -108,6 +115,53 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
             tree.report.upload_seconds += upload
             return BVH(mesh, tree)
         return _build_lbvh(ctx, mesh, upload, build_options, collapse_options)
+
+
+def is_trimesh_scene(value: Any) -> bool:
+    """Whether ``value`` is a ``trimesh.Scene`` (a graph of placed geometries)."""
+    return hasattr(value, "graph") and isinstance(getattr(value, "geometry", None), dict)
+
+
+def build_scene(source: Any, **options: Any) -> Scene:
+    """A :class:`lbvh.Scene` of instances from a ``trimesh.Scene`` or a list of meshes.
+
+    ``trimesh.Scene``: every node of its graph that places a triangle mesh becomes an
+    instance with the node's world transform; a geometry placed several times is
+    built once (geometry without triangles, points or paths, is left out). A list:
+    each item a ``trimesh.Trimesh`` or a ``(vertices, faces)`` pair, each placed once
+    where it is (the identity). ``options`` go to :func:`build` for every mesh.
+    The instances' ``names`` are the graph's node names (a list: ``"0"``, ``"1"``...).
+    """
+    if is_trimesh_scene(source):
+        names, geometry_of, transforms = [], [], []
+        for node in source.graph.nodes_geometry:
+            matrix, geometry = source.graph[node]
+            mesh = source.geometry.get(geometry)
+            if mesh is None or len(getattr(mesh, "faces", ())) == 0:
+                continue
+            names.append(str(node))
+            geometry_of.append(geometry)
+            transforms.append(np.asarray(matrix, np.float64))
+        if not names:
+            raise ValueError("source: a trimesh.Scene without triangle meshes in its graph")
+        keys = sorted(set(geometry_of), key=geometry_of.index)
+        meshes = [build(source.geometry[k], **options) for k in keys]
+        mesh_of = [keys.index(g) for g in geometry_of]
+        return Scene(meshes, mesh_of, np.stack(transforms), names=names)
+    items = list(source)
+    if not items:
+        raise ValueError("source: an empty list of meshes")
+    meshes = []
+    for k, item in enumerate(items):
+        if isinstance(item, (tuple, list)) and len(item) == 2:
+            meshes.append(build(item[0], item[1], **options))
+        elif hasattr(item, "vertices") and hasattr(item, "faces"):
+            meshes.append(build(item, **options))
+        else:
+            raise ValueError(f"source: item {k} is a {type(item).__name__}; expected a "
+                             "trimesh.Trimesh or a (vertices, faces) pair")
+    eye = np.tile(np.eye(3, 4), (len(meshes), 1, 1))
+    return Scene(meshes, np.arange(len(meshes)), eye, names=[str(k) for k in range(len(meshes))])
 
 
 def _build_lbvh(ctx: dev.Context, mesh: Mesh, upload: float, options: LBVHOptions,

@@ -115,6 +115,11 @@ def as_mesh(vertices: Any, faces: Any = None) -> tuple[np.ndarray, np.ndarray]:
         if is_mesh:
             return as_mesh(vertices.vertices, vertices.faces)
         raise ValueError(_missing_faces(vertices))
+    if hasattr(vertices, "geometry") and isinstance(getattr(vertices, "geometry"), dict):
+        count = len(vertices.geometry)
+        raise ValueError(f"vertices: a {_kind(vertices)} of {count} geometr"
+                         f"{'y' if count == 1 else 'ies'} was passed together with faces; pass "
+                         "the scene alone (lbvh.build(scene) makes an lbvh.Scene)")
     if is_mesh:
         raise ValueError(f"vertices: a {_kind(vertices)} was passed together with faces; pass the "
                          "mesh alone (lbvh.build(mesh)) or its arrays "
@@ -129,8 +134,8 @@ def _missing_faces(value: Any) -> str:
     if hasattr(value, "geometry") and isinstance(getattr(value, "geometry"), dict):
         count = len(value.geometry)
         return (f"faces: missing: a {kind} of {count} geometr{'y' if count == 1 else 'ies'} was "
-                "passed; lbvh builds one mesh: pass scene.to_mesh() for all of them flattened "
-                "into one, or one of scene.geometry's meshes")
+                "passed; lbvh.build(scene) alone makes an lbvh.Scene of its instances, "
+                "scene.to_mesh() flattens it into one mesh")
     if hasattr(value, "vertices"):
         return (f"faces: missing: a {kind} has vertices but no faces; a BVH is built over "
                 "triangles (pass a triangle mesh, or vertices and faces)")

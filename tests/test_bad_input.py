@@ -218,9 +218,16 @@ ROWS: list[Row] = [
     Row("lbvh.build", "no faces", lambda e: _b(e, e.v, np.zeros((0, 3), np.uint32)),
         ValueError, "no triangles"),
     Row("lbvh.build", "faces missing", lambda e: _b(e, e.v), ValueError, "faces: missing"),
-    Row("lbvh.build", "a trimesh.Scene", lambda e: _b(e, __import__("trimesh").Scene(
-        [__import__("trimesh").Trimesh(e.v, e.f, process=False)] * 2)), ValueError,
+    Row("lbvh.build", "a trimesh.Scene without meshes", lambda e: _b(
+        e, __import__("trimesh").Scene([__import__("trimesh").PointCloud(e.v)])), ValueError,
+        "a trimesh.Scene without triangle meshes"),
+    Row("lbvh.build", "a trimesh.Scene and faces", lambda e: _b(e, __import__("trimesh").Scene(
+        [__import__("trimesh").Trimesh(e.v, e.f, process=False)] * 2), e.f), ValueError,
         "a trimesh.Scene of 2 geometries"),
+    Row("lbvh.build", "a list with a bad item", lambda e: _b(e, [(e.v, e.f), "mesh.obj"]),
+        ValueError, "item 1 is a str"),
+    Row("lbvh.Scene", "a singular transform", lambda e: lbvh.Scene([e.bvh], [0], np.zeros((1, 3, 4))),
+        ValueError, "instance 0 is singular"),
     Row("lbvh.build", "a trimesh.PointCloud", lambda e: _b(e, __import__("trimesh").PointCloud(e.v)),
         ValueError, "has vertices but no faces"),
     Row("lbvh.build", "a mesh and its faces", lambda e: _b(

@@ -36,6 +36,9 @@ targets = v[f[rng.integers(0, len(f), 6000)]].mean(axis=1)
 o = (targets + rng.normal(size=targets.shape) * 40).astype(np.float32)
 d = (targets - o).astype(np.float32)
 shared = lbvh.build(v, f)
+moves = np.tile(np.eye(3, 4), (2, 1, 1))
+moves[1, :, 3] = [5.0, 0.0, 0.0]
+scene = lbvh.Scene([shared], [0, 0], moves)
 camera = frame_bounds(v.min(axis=0), v.max(axis=0), 48, 32)
 
 def digest(*arrays):
@@ -70,6 +73,8 @@ JOBS = {
     "count hits": lambda: digest(shared.count_hits(o, d)),
     "all hits": lambda: digest(*(lambda a: (a.offsets, a.t, a.prim))(shared.all_hits(o, d, max_hits=3))),
     "signed distance": lambda: digest(shared.signed_distance(o[:300])),
+    "scene intersect": lambda: digest(*(lambda h: (h.t, h.prim, h.instance))(scene.intersect(o, d))),
+    "new scene": lambda: digest(lbvh.Scene([shared], [0, 0], moves * 2).occluded(o, d)),
     "intersect async": lambda: digest(*(lambda h: (h.t, h.prim))(
         shared.intersect_async(o, d).result())),
     "intersect device arrays": lambda: digest(*(lambda h: (h.t, h.prim))(shared.intersect(

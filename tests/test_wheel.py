@@ -28,7 +28,7 @@ from conftest import REPO
 from lbvh.version import __version__
 
 #: The README sections whose examples must run from a wheel.
-SECTIONS = ("Using it", "Ray queries and images", "Point queries")
+SECTIONS = ("Using it", "Ray queries and images", "Point queries", "Scenes of many meshes")
 DATA_FILES = ("lbvh/py.typed", "lbvh/data/teapot.obj", "lbvh/data/cameras.json",
               "lbvh/data/README.md", "lbvh/data/licenses/common-3d-test-models_README.md")
 

@@ -34,7 +34,7 @@ from ..builders import bounds
 from ..builders import collapse
 from ..builders import emit
 from ..builders import morton
-from ..queries import all_hits, closest, overlap, ray_order, rays, winding
+from ..queries import all_hits, closest, instances, overlap, ray_order, rays, winding
 from ..builders import refit
 from ..builders import restructure
 from ..device import sort
@@ -148,6 +148,11 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
         for stack in traverse.STACK_BUCKETS:   # segment_work: the counting pass's counters
             add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": 1, "COUNTERS": 1,
                                        "SLAB_PAD": traverse.slab_pad(ctx)})
+    # instances.cl: closest and any hit, counters, both triangle tests, one stack per bucket
+    for ctx in ctxs:
+        for any_hit, counters, test, stack in itertools.product(
+                (False, True), (False, True), traverse.TRIANGLE_TESTS, traverse.STACK_BUCKETS):
+            add(instances.KERNEL_FILE, traverse.kernel_defines(ctx, any_hit, test, counters, stack))
     # winding.cl: one stack size per bucket
     for stack in traverse.STACK_BUCKETS:
         add(winding.KERNEL_FILE, {"STACK_SIZE": stack})

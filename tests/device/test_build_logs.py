@@ -111,6 +111,12 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
         bvh.refit(v * np.float32(1.25) if len(bvh.vertices) == len(v) else bvh.vertices * 2)
         bvh.intersect(o, d)
     collapse_leaves(trees[7])
+    # a scene of instances: closest and any hit, counters, both triangle tests
+    scene = lbvh.Scene(trees[:2], [0, 1, 0], np.tile(np.eye(3, 4), (3, 1, 1)) * 1.5)
+    for test in ("watertight", "moller"):
+        scene.intersect(o, d, triangle_test=test, counters=True)
+        scene.intersect(o, d, triangle_test=test)
+        scene.occluded(o, d, triangle_test=test)
     # Wide records of both widths, and the binary walk where records would not fit.
     bvh = trees[0]
     for width in WIDTHS:

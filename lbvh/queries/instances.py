@@ -1,0 +1,173 @@
+"""Ray queries through a two-level scene of instances (kernels/instances.cl).
+
+:class:`lbvh.Scene` holds the meshes' trees and the instances (a mesh and the
+3x4 transform that places it); this module keeps what the kernel reads
+(:class:`SceneBuffers`) and traces rays through it: the closest hit
+(:func:`intersect_scene`) or any hit (``any_hit=True``). Rays are checked as
+for :func:`lbvh.queries.traverse.intersect`.
+
+The hit's ``t`` is along the ray as given in world space (the ray moved into
+an instance's space keeps its parameter); ``prim`` is the triangle within its
+mesh, ``instance`` the instance's index in the scene (``id`` its user id).
+The answers are a flattened copy's (every instance's vertices transformed,
+one mesh) up to rounding: the kernel moves the ray, a flattened copy moves
+the vertices, so a ray within rounding of an edge may hit the neighbour, and
+``t`` differs by the float32 rounding of the transform (the tests' bound:
+``1e-5`` of the scene's extent over ``|d|``, a few hundred units of float32
+rounding of the coordinates).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pyopencl as cl
+
+from .. import device as dev
+from ..tree import Tree
+from .rays import InvalidRays, check_invalid_rays, check_rays, is_device_array
+from .traverse import TRIANGLE_TESTS, kernel_defines, stack_bucket
+
+KERNEL_FILE = "instances.cl"
+
+__all__ = ["SceneBuffers", "SceneHits", "intersect_scene"]
+
+_WORK_GROUP = 64
+
+
+@dataclass
+class SceneBuffers:
+    """What kernels/instances.cl reads of a scene, on the device.
+
+    ``top``: the top-level tree over the instances' world boxes (its slots name
+    instances). ``inverse``: ``float32 (I, 12)`` world-to-mesh transforms (M row by
+    row, then c). ``inst_root``: ``int32 (I,)`` root node of each instance's mesh in
+    ``nodes``. ``nodes``, ``prim_order``, ``vertices``, ``slot_faces``: every mesh's
+    tree and faces one after the other, indices offset. ``depth``: the deepest tree
+    of both levels (the stack's size).
+    """
+    top: Tree
+    inverse: cl.Buffer
+    inst_root: cl.Buffer
+    nodes: cl.Buffer
+    num_nodes: int
+    prim_order: cl.Buffer
+    vertices: cl.Buffer
+    slot_faces: cl.Buffer
+    depth: int
+
+
+@dataclass
+class SceneHits:
+    """Results of a ray query through a scene, one entry per ray (numpy arrays).
+
+    Attributes:
+        t: ``float32 (N,)`` distance along the world direction, ``inf`` on a miss.
+        prim: ``int32 (N,)`` the triangle within its mesh, ``-1`` on a miss.
+        u, v: ``float32 (N,)`` barycentrics on that triangle (in its mesh).
+        instance: ``int32 (N,)`` the instance's index in the scene, ``-1`` on a miss.
+        id: ``int64 (N,)`` the instance's id, ``-1`` on a miss.
+        mesh: ``int32 (N,)`` the index of the instance's mesh, ``-1`` on a miss.
+        overflow: ``bool (N,)`` a stack overflowed (flagged, never silent);
+            ``overflow_count`` how many.
+        nodes_visited, tris_tested: ``int32 (N,)`` with ``counters=True``.
+        invalid: ``bool (N,)`` the ray was bad and not traced (``invalid_rays="miss"``).
+    """
+    t: np.ndarray
+    prim: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    instance: np.ndarray
+    id: np.ndarray
+    mesh: np.ndarray
+    overflow: np.ndarray
+    overflow_count: int
+    nodes_visited: np.ndarray | None = None
+    tris_tested: np.ndarray | None = None
+    invalid: np.ndarray | None = None
+
+    @property
+    def mask(self) -> np.ndarray:
+        """``bool (N,)``: whether each ray hit something."""
+        return self.prim >= 0
+
+    hit = mask
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+def intersect_scene(ctx: dev.Context, buffers: SceneBuffers, ids: np.ndarray,
+                    mesh_of: np.ndarray, origins: Any, directions: Any, tmin: Any = 0.0,
+                    tmax: Any = np.inf, *, any_hit: bool = False,
+                    triangle_test: str = "watertight", counters: bool = False,
+                    batch_size: int = 1 << 20, invalid_rays: InvalidRays = "raise") -> SceneHits:
+    """The closest hit (or with ``any_hit`` a hit) of each ray through the scene whose
+    device data is ``buffers`` (:class:`lbvh.Scene` calls this; arguments as
+    :func:`lbvh.queries.traverse.intersect`'s). The caller holds ``ctx.lock``."""
+    check_invalid_rays(invalid_rays)
+    if triangle_test not in TRIANGLE_TESTS:
+        raise ValueError(f"triangle_test: {triangle_test!r}; expected one of "
+                         f"{', '.join(TRIANGLE_TESTS)}")
+    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
+            or batch_size < 1:
+        raise ValueError(f"batch_size: {batch_size!r}; expected a positive integer")
+    origins, directions, tmin, tmax = (x.get() if is_device_array(x) else x
+                                       for x in (origins, directions, tmin, tmax))
+    rays = check_rays(origins, directions, tmin, tmax, invalid_rays=invalid_rays)
+    n = len(rays)
+    good = np.arange(n) if rays.invalid is None else np.flatnonzero(~rays.invalid)
+    part = rays if rays.invalid is None else rays.take(good)
+    planes = np.empty((5, len(part)), np.float32)
+    flags = np.zeros(len(part), np.int32)
+    count = np.zeros((len(part), 2), np.int32)
+    defines = kernel_defines(ctx, any_hit, triangle_test, counters,
+                             stack_bucket(buffers.depth + 1))
+    lo, hi, stride = part.kernel_intervals()
+    mem, top = ctx.memory, buffers.top
+    for start in range(0, len(part), int(batch_size)):
+        stop = min(len(part), start + int(batch_size))
+        m = stop - start
+        bufs = {"o": mem.upload(part.origins[start:stop]),
+                "d": mem.upload(part.directions[start:stop]),
+                "lo": mem.upload(np.ascontiguousarray(lo[start:stop] if stride else lo)),
+                "hi": mem.upload(np.ascontiguousarray(hi[start:stop] if stride else hi)),
+                "hits": mem.alloc(20 * m), "flags": mem.alloc(4 * m), "count": mem.alloc(8 * m)}
+        try:
+            launch = dev.Launch(m, 1, -(-m // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
+            ev = dev.run(ctx, KERNEL_FILE, "trace_instances", launch, top.nodes, top.prim_order,
+                         top.root, top.num_nodes, buffers.inverse, buffers.inst_root,
+                         buffers.nodes, buffers.num_nodes, buffers.prim_order, buffers.vertices,
+                         buffers.slot_faces, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"], stride,
+                         bufs["hits"], bufs["flags"], bufs["count"], m, defines=defines)
+            for k in range(5):
+                cl.enqueue_copy(ctx.queue, planes[k, start:stop], bufs["hits"],
+                                src_offset=4 * k * m, wait_for=[ev], is_blocking=False)
+            cl.enqueue_copy(ctx.queue, flags[start:stop], bufs["flags"], wait_for=[ev],
+                            is_blocking=False)
+            if counters:
+                cl.enqueue_copy(ctx.queue, count[start:stop], bufs["count"], wait_for=[ev],
+                                is_blocking=False)
+            ctx.queue.finish()
+        finally:
+            mem.free(*bufs.values())
+    out = SceneHits(t=np.full(n, np.inf, np.float32), prim=np.full(n, -1, np.int32),
+                    u=np.zeros(n, np.float32), v=np.zeros(n, np.float32),
+                    instance=np.full(n, -1, np.int32), id=np.full(n, -1, np.int64),
+                    mesh=np.full(n, -1, np.int32), overflow=np.zeros(n, bool), overflow_count=0,
+                    nodes_visited=np.zeros(n, np.int32) if counters else None,
+                    tris_tested=np.zeros(n, np.int32) if counters else None,
+                    invalid=np.zeros(n, bool) if rays.invalid is None else rays.invalid)
+    out.t[good], out.u[good], out.v[good] = planes[0], planes[1], planes[2]
+    out.prim[good] = planes[3].view(np.int32)
+    inst = planes[4].view(np.int32)
+    out.instance[good] = inst
+    hit = inst >= 0
+    out.id[good[hit]] = ids[inst[hit]]
+    out.mesh[good[hit]] = mesh_of[inst[hit]]
+    out.overflow[good] = flags != 0
+    out.overflow_count = int(out.overflow.sum())
+    if counters:
+        out.nodes_visited[good], out.tris_tested[good] = count[:, 0], count[:, 1]
+    return out

@@ -1,0 +1,280 @@
+"""A two-level scene: meshes, each with its own BVH, placed as instances by transforms.
+
+``lbvh.Scene(meshes, mesh_of, transforms, ids=None)`` takes the meshes' trees
+(:class:`lbvh.BVH` objects, built as ever, on one device) and the instances:
+for instance ``i`` the index ``mesh_of[i]`` of its mesh and the affine
+transform ``transforms[i]`` (``(3, 4)`` or ``(4, 4)``, object to world:
+``p_world = A p + b``) and an id (default ``i``). A mesh placed many times is
+stored and built once. The top level is an LBVH over the instances' world
+boxes (the eight corners of the mesh's root box transformed in float64,
+rounded outwards to float32), built by the same device pipeline
+(:func:`lbvh.builders.pipeline.build_tree`).
+
+Queries: :meth:`Scene.intersect` (closest hit) and :meth:`Scene.occluded`
+(any hit), with the rays of :func:`lbvh.queries.traverse.intersect`; hits
+report the instance (index and id), the mesh, the triangle within it and
+``t`` in world space (:class:`lbvh.queries.instances.SceneHits`).
+:meth:`Scene.set_transforms` moves instances: only the top level is built
+again (milliseconds), never a mesh. :meth:`Scene.flattened` gives the one
+mesh the scene stands for (every instance's vertices transformed), what the
+tests compare the scene's answers with. ``lbvh.build`` makes a scene from a
+``trimesh.Scene`` or a list of meshes.
+"""
+from __future__ import annotations
+
+import weakref
+from typing import Any, Sequence
+
+import numpy as np
+import pyopencl as cl
+
+from . import device as dev
+from .builders.options import LBVHOptions
+from .builders.pipeline import build_tree
+from .bvh import BVH
+from .layout import is_leaf
+from .mesh import real_array
+from .queries.instances import SceneBuffers, SceneHits, intersect_scene
+from .queries.rays import InvalidRays
+from .tree import Mesh
+
+__all__ = ["Scene", "check_transforms"]
+
+
+def check_transforms(transforms: Any, count: int | None = None) -> np.ndarray:
+    """``float64 (I, 3, 4)`` affine transforms from ``(I, 3, 4)`` or ``(I, 4, 4)`` (whose
+    last rows must be ``0 0 0 1``), finite and invertible, or a ``ValueError`` naming the
+    first bad one."""
+    t = real_array("transforms", transforms).astype(np.float64)
+    if t.ndim != 3 or t.shape[1:] not in ((3, 4), (4, 4)):
+        raise ValueError(f"transforms: shape {t.shape}, expected (I, 3, 4) or (I, 4, 4)")
+    if count is not None and len(t) != count:
+        raise ValueError(f"transforms: {len(t)} of them for {count} instances")
+    if t.shape[1] == 4:
+        bottom = np.abs(t[:, 3] - [0, 0, 0, 1]).max(axis=1) != 0
+        if bottom.any():
+            i = int(np.flatnonzero(bottom)[0])
+            raise ValueError(f"transforms: instance {i} is not affine (last row "
+                             f"{t[i, 3].tolist()}, expected [0, 0, 0, 1])")
+        t = t[:, :3]
+    bad = ~np.isfinite(t).all(axis=(1, 2))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"transforms: instance {i} has a NaN or infinite entry")
+    det = np.linalg.det(t[:, :, :3])
+    scale = np.abs(t[:, :, :3]).max(axis=(1, 2)) ** 3
+    singular = ~(np.abs(det) > 1e-12 * scale)
+    if singular.any():
+        i = int(np.flatnonzero(singular)[0])
+        raise ValueError(f"transforms: instance {i} is singular (determinant {det[i]:.3g}): "
+                         "it would flatten its mesh")
+    return np.ascontiguousarray(t)
+
+
+def _outward(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """float64 boxes rounded outwards to float32."""
+    lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
+    lo32 = np.where(lo32 > lo, np.nextafter(lo32, np.float32(-np.inf)), lo32)
+    hi32 = np.where(hi32 < hi, np.nextafter(hi32, np.float32(np.inf)), hi32)
+    return lo32, hi32
+
+
+class Scene:
+    """Instances of meshes placed by transforms, with a top-level BVH over them.
+
+    Attributes:
+        meshes: the meshes' :class:`lbvh.BVH` objects (each built once).
+        mesh_of: ``int32 (I,)`` the mesh of each instance.
+        transforms: ``float64 (I, 3, 4)`` object-to-world transforms (read-only view).
+        ids: ``int64 (I,)`` the instances' ids; ``names`` their names (a trimesh
+            scene's node names; default the ids as text).
+        top: the top-level :class:`lbvh.BVH` over the instances' world boxes.
+    """
+
+    def __init__(self, meshes: Sequence[BVH], mesh_of: Any, transforms: Any,
+                 ids: Any = None, names: Sequence[str] | None = None) -> None:
+        meshes = list(meshes)
+        if not meshes:
+            raise ValueError("meshes: none given")
+        for k, m in enumerate(meshes):
+            if not isinstance(m, BVH):
+                raise ValueError(f"meshes: item {k} is a {type(m).__name__}, expected an "
+                                 "lbvh.BVH (lbvh.build makes them)")
+        ctx = meshes[0].ctx
+        if any(m.ctx is not ctx for m in meshes):
+            raise ValueError("meshes: built on different devices; build them on one")
+        which = real_array("mesh_of", mesh_of)
+        if which.ndim != 1 or not np.issubdtype(which.dtype, np.integer):
+            raise ValueError(f"mesh_of: shape {which.shape} dtype {which.dtype}, expected "
+                             "(I,) integers")
+        if len(which) == 0:
+            raise ValueError("mesh_of: no instances")
+        outside = (which < 0) | (which >= len(meshes))
+        if outside.any():
+            i = int(np.flatnonzero(outside)[0])
+            raise ValueError(f"mesh_of: instance {i} names mesh {int(which[i])}, outside "
+                             f"[0, {len(meshes)})")
+        t = check_transforms(transforms, len(which))
+        if ids is None:
+            ids = np.arange(len(which))
+        ids = real_array("ids", ids)
+        if ids.shape != which.shape or not np.issubdtype(ids.dtype, np.integer):
+            raise ValueError(f"ids: shape {ids.shape} dtype {ids.dtype}, expected ({len(which)},) "
+                             "integers")
+        if len(np.unique(ids)) != len(ids):
+            raise ValueError("ids: not unique")
+        if names is not None and len(names) != len(which):
+            raise ValueError(f"names: {len(names)} of them for {len(which)} instances")
+        self.names = list(names) if names is not None else [str(x) for x in ids.tolist()]
+        self.meshes = meshes
+        self.mesh_of = which.astype(np.int32)
+        self.ids = ids.astype(np.int64)
+        self.mesh_of.setflags(write=False)
+        self.ids.setflags(write=False)
+        self.ctx = ctx
+        self._index = {int(x): i for i, x in enumerate(self.ids)}
+        with ctx.lock:
+            self._upload_meshes()
+            self._place(t)
+
+    # -- device data -------------------------------------------------------------
+    def _upload_meshes(self) -> None:
+        """Every mesh's tree and faces, one after the other, indices offset."""
+        nodes, orders, verts, slot_faces, roots = [], [], [], [], []
+        node_base = slot_base = vertex_base = 0
+        depth = 0
+        for bvh in self.meshes:
+            n = bvh.nodes.copy()
+            leaf = is_leaf(n)
+            n["a"] += np.where(leaf, slot_base, node_base).astype(np.int32)
+            n["b"] += np.where(leaf, 0, node_base).astype(np.int32)
+            nodes.append(n)
+            order = np.asarray(bvh.prim_order)
+            orders.append(order)
+            slot_faces.append((bvh.faces[order].astype(np.int64) + vertex_base).astype(np.uint32))
+            verts.append(bvh.vertices)
+            roots.append(node_base + bvh.root)
+            depth = max(depth, bvh.traversal_depth())
+            node_base += bvh.num_nodes
+            slot_base += bvh.num_prims
+            vertex_base += len(bvh.vertices)
+        up = self.ctx.memory.upload
+        self._nodes = up(np.concatenate(nodes))
+        self._num_nodes = node_base
+        self._prim_order = up(np.concatenate(orders).astype(np.int32))
+        self._vertices = up(np.concatenate(verts))
+        self._slot_faces = up(np.concatenate(slot_faces))
+        self._mesh_roots = np.array(roots, np.int32)
+        self._mesh_depth = depth
+        self._inst_root = up(self._mesh_roots[self.mesh_of])
+        self._owned: list[cl.Buffer] = [self._nodes, self._prim_order, self._vertices,
+                                        self._slot_faces, self._inst_root]
+        weakref.finalize(self, self.ctx.memory.dropped, self._owned)
+
+    def _place(self, transforms: np.ndarray) -> None:
+        """Set the transforms: the inverses, the world boxes and the top level."""
+        self._transforms = transforms
+        self._transforms.setflags(write=False)
+        a, b = transforms[:, :, :3], transforms[:, :, 3]
+        inv = np.linalg.inv(a)
+        inverse = np.concatenate([inv.reshape(-1, 9), -np.einsum("ijk,ik->ij", inv, b)], axis=1)
+        roots = [m.root for m in self.meshes]
+        lo = np.stack([m.lower[r] for m, r in zip(self.meshes, roots)]).astype(np.float64)
+        hi = np.stack([m.upper[r] for m, r in zip(self.meshes, roots)]).astype(np.float64)
+        corners = np.stack([np.where(np.array([(c >> k) & 1 for k in range(3)], bool), hi, lo)
+                            for c in range(8)], axis=1)          # (meshes, 8, 3)
+        world = np.einsum("ijk,imk->imj", a, corners[self.mesh_of]) + b[:, None, :]
+        wlo, whi = _outward(world.min(axis=1), world.max(axis=1))
+        # The top level: the pipeline over one "triangle" per instance, (lo, hi, hi),
+        # whose box is the instance's world box and whose centre is the box's.
+        v = np.stack([wlo, whi, whi], axis=1).reshape(-1, 3)
+        f = np.arange(len(v), dtype=np.uint32).reshape(-1, 3)
+        old = getattr(self, "_inverse", None)
+        mesh = Mesh.upload(self.ctx, v, f)
+        self.top = BVH(mesh, build_tree(self.ctx, mesh, LBVHOptions()))
+        self._inverse = self.ctx.memory.upload(inverse.astype(np.float32))
+        if old is not None:
+            self._owned.remove(old)
+            self.ctx.memory.free(old)
+        self._owned.append(self._inverse)
+
+    def _buffers(self) -> SceneBuffers:
+        return SceneBuffers(self.top.tree, self._inverse, self._inst_root, self._nodes,
+                            self._num_nodes, self._prim_order, self._vertices, self._slot_faces,
+                            max(self._mesh_depth, self.top.traversal_depth()))
+
+    # -- what it holds -------------------------------------------------------------
+    @property
+    def transforms(self) -> np.ndarray:
+        return self._transforms
+
+    @property
+    def num_instances(self) -> int:
+        return len(self.mesh_of)
+
+    @property
+    def num_triangles(self) -> int:
+        """Triangles in world space: every instance's, counted once per instance."""
+        return int(sum(self.meshes[m].num_prims for m in self.mesh_of))
+
+    @dev.serialised
+    def set_transforms(self, ids: Any, transforms: Any) -> "Scene":
+        """Move the instances ``ids`` (their ids) to ``transforms`` (``(K, 3, 4)`` or
+        ``(K, 4, 4)``); only the top level is built again. On a bad input nothing
+        changes. Returns ``self``."""
+        ids = np.atleast_1d(real_array("ids", ids))
+        t = check_transforms(transforms, len(ids))
+        rows = []
+        for x in ids.tolist():
+            if x not in self._index:
+                raise ValueError(f"ids: no instance has id {x}")
+            rows.append(self._index[x])
+        new = self._transforms.copy()
+        new[rows] = t
+        self._place(new)
+        return self
+
+    def flattened(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The one mesh the scene stands for: ``float32 (V, 3)`` vertices (every
+        instance's, transformed in float64), ``uint32 (F, 3)`` faces and ``int32 (F,)``
+        the instance of each face; an instance's faces in its mesh's order."""
+        verts, faces, owner = [], [], []
+        base = 0
+        for i, m in enumerate(self.mesh_of):
+            mesh = self.meshes[m]
+            t = self._transforms[i]
+            verts.append(mesh.vertices.astype(np.float64) @ t[:, :3].T + t[:, 3])
+            faces.append(mesh.faces.astype(np.int64) + base)
+            owner.append(np.full(mesh.num_prims, i, np.int32))
+            base += len(mesh.vertices)
+        return (np.concatenate(verts).astype(np.float32), np.concatenate(faces).astype(np.uint32),
+                np.concatenate(owner))
+
+    # -- ray queries ---------------------------------------------------------------
+    def intersect(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
+                  triangle_test: str = "watertight", counters: bool = False,
+                  batch_size: int = 1 << 20, invalid_rays: InvalidRays = "raise") -> SceneHits:
+        """Closest hit of each ray in ``[tmin, tmax]``: :class:`SceneHits` (arguments as
+        :meth:`lbvh.BVH.intersect`'s)."""
+        with self.ctx.lock:
+            return intersect_scene(self.ctx, self._buffers(), self.ids, self.mesh_of, origins,
+                                   directions, tmin, tmax, triangle_test=triangle_test,
+                                   counters=counters, batch_size=batch_size,
+                                   invalid_rays=invalid_rays)
+
+    def occluded(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
+                 triangle_test: str = "watertight", batch_size: int = 1 << 20,
+                 return_hits: bool = False, invalid_rays: InvalidRays = "raise"
+                 ) -> np.ndarray | SceneHits:
+        """Whether each ray hits anything in ``[tmin, tmax]`` (``bool (N,)``), or with
+        ``return_hits`` the :class:`SceneHits` of the hit found (not the closest)."""
+        with self.ctx.lock:
+            hits = intersect_scene(self.ctx, self._buffers(), self.ids, self.mesh_of, origins,
+                                   directions, tmin, tmax, any_hit=True,
+                                   triangle_test=triangle_test, batch_size=batch_size,
+                                   invalid_rays=invalid_rays)
+        return hits if return_hits else hits.mask
+
+    def __repr__(self) -> str:
+        return (f"<lbvh.Scene: {self.num_instances} instances of {len(self.meshes)} meshes, "
+                f"{self.num_triangles:,} triangles in world space on {self.ctx.name}>")
