@@ -349,6 +349,14 @@ class BVH:
         return overlap.overlapping(self, lower, upper)
 
     # -- persistence ------------------------------------------------------------
+    def __reduce__(self) -> tuple:
+        """Pickling: the tree's and the mesh's host arrays travel (as :meth:`save` writes
+        them), not the device buffers; unpickling uploads them to the default device of
+        the process that unpickles (``$LBVH_DEVICE`` or PoCL's CPU device; a worker of a
+        cluster uses its own), without validating again."""
+        return (_unpickle_bvh, (self.nodes, self.prim_order, self.root, self.vertices,
+                                self.faces, self.builder, self.build_report))
+
     def save(self, path: str | os.PathLike) -> None:
         """Write the tree and its mesh to ``path`` exactly (no suffix is added; ``.npz``
         is the custom), an ``.npz`` archive readable with plain numpy; :func:`lbvh.load`
@@ -361,3 +369,10 @@ class BVH:
     def __repr__(self) -> str:
         return (f"<lbvh.BVH {self.builder}: {self.num_prims} triangles, {self.num_nodes} nodes "
                 f"on {self.ctx.name}>")
+
+
+def _unpickle_bvh(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices: np.ndarray,
+                  faces: np.ndarray, builder: str, report: BuildReport | None) -> BVH:
+    """The inverse of :meth:`BVH.__reduce__` (the arrays were valid when pickled)."""
+    return BVH.from_arrays(nodes, prim_order, root, vertices, faces, builder=builder,
+                           report=report, validate=False)

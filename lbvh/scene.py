@@ -275,6 +275,12 @@ class Scene:
                                    invalid_rays=invalid_rays)
         return hits if return_hits else hits.mask
 
+    def __reduce__(self) -> tuple:
+        """Pickling: the meshes (each :class:`lbvh.BVH` pickles its arrays), the instances
+        and their transforms travel; unpickling builds the top level on the unpickling
+        process's default device."""
+        return (Scene, (self.meshes, self.mesh_of, self._transforms, self.ids, self.names))
+
     def __repr__(self) -> str:
         return (f"<lbvh.Scene: {self.num_instances} instances of {len(self.meshes)} meshes, "
                 f"{self.num_triangles:,} triangles in world space on {self.ctx.name}>")

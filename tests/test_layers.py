@@ -28,7 +28,7 @@ LAYERS = [
     ("lbvh.verification.oracle", 5),   # answers the queries in float64 (their Hits)
     ("lbvh.verification.meshes", 4),
     ("lbvh.queries", 5),
-    ("lbvh.bvh", 6), ("lbvh.scene", 6),
+    ("lbvh.bvh", 6), ("lbvh.scene", 6), ("lbvh.dask", 6),
     ("lbvh.api", 7),
     ("lbvh.verification", 8), ("lbvh.rendering", 8), ("lbvh.trimesh", 8),
     ("lbvh.cli", 9),
