@@ -179,12 +179,22 @@ __kernel void trace_instances(__global const float4 *top_nodes, __global const i
                 const int inst = top_order[s];
                 __global const float *m = inverse + 12 * inst;
                 Ray moved;
-                moved.ox = m[0] * ox + m[1] * oy + m[2] * oz + m[9];
-                moved.oy = m[3] * ox + m[4] * oy + m[5] * oz + m[10];
-                moved.oz = m[6] * ox + m[7] * oy + m[8] * oz + m[11];
-                moved.dx = m[0] * dx + m[1] * dy + m[2] * dz;
-                moved.dy = m[3] * dx + m[4] * dy + m[5] * dz;
-                moved.dz = m[6] * dx + m[7] * dy + m[8] * dz;
+                /* the identity (parts of one mesh) moves nothing, not even the sign of a zero */
+                const int identity = m[0] == 1.0f && m[1] == 0.0f && m[2] == 0.0f &&
+                                     m[3] == 0.0f && m[4] == 1.0f && m[5] == 0.0f &&
+                                     m[6] == 0.0f && m[7] == 0.0f && m[8] == 1.0f &&
+                                     m[9] == 0.0f && m[10] == 0.0f && m[11] == 0.0f;
+                if (identity) {
+                    moved.ox = ox; moved.oy = oy; moved.oz = oz;
+                    moved.dx = dx; moved.dy = dy; moved.dz = dz;
+                } else {
+                    moved.ox = m[0] * ox + m[1] * oy + m[2] * oz + m[9];
+                    moved.oy = m[3] * ox + m[4] * oy + m[5] * oz + m[10];
+                    moved.oz = m[6] * ox + m[7] * oy + m[8] * oz + m[11];
+                    moved.dx = m[0] * dx + m[1] * dy + m[2] * dz;
+                    moved.dy = m[3] * dx + m[4] * dy + m[5] * dz;
+                    moved.dz = m[6] * dx + m[7] * dy + m[8] * dz;
+                }
                 moved.tmin = tmin;
                 moved.tmax = min_keep(best, tmax);
                 if (moved.dx == 0.0f && moved.dy == 0.0f && moved.dz == 0.0f) continue;

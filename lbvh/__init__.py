@@ -38,7 +38,7 @@ The package, in layers (a module imports only from layers above it in this list)
 ==================  =================================================================
 """
 from . import data
-from .api import build, build_scene, load
+from .api import build, build_parts, build_scene, load
 from .builders.options import CollapseOptions, LBVHOptions, SAHOptions, SplitOptions
 from .bvh import BVH
 from .scene import Scene
@@ -60,7 +60,7 @@ from .version import __version__
 if _self_test not in CONTEXT_CHECKS:
     CONTEXT_CHECKS.append(_self_test)
 
-__all__ = ["build", "build_scene", "load", "BVH", "Scene", "Hits", "AllHits", "Closest", "Overlaps", "LBVHOptions",
+__all__ = ["build", "build_parts", "build_scene", "load", "BVH", "Scene", "Hits", "AllHits", "Closest", "Overlaps", "LBVHOptions",
            "SAHOptions", "SplitOptions", "CollapseOptions",
            "render", "Camera", "load_scene", "sah_cost", "tree_quality", "BVHValidationError",
            "DeviceError", "data", "__version__"]

@@ -99,8 +99,10 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
     else:
         v, f = as_mesh(vertices, faces)
     ctx = dev.get_context(device)
-    if builder == "lbvh":
-        pipeline.check_fits(ctx, len(f))
+    if builder == "lbvh" and not pipeline.fits(ctx, len(f)):
+        # beyond the device's largest buffer: parts that fit, one scene
+        return build_parts(v, f, pipeline.max_triangles(ctx), device=device, collapse=collapse,
+                           options=options, progress=progress, **fields)
     with ctx.lock:   # one call's commands at a time on the context's queue
         t0 = time.perf_counter()
         mesh = Mesh.upload(ctx, v, f)
@@ -162,6 +164,46 @@ def build_scene(source: Any, **options: Any) -> Scene:
                              "trimesh.Trimesh or a (vertices, faces) pair")
     eye = np.tile(np.eye(3, 4), (len(meshes), 1, 1))
     return Scene(meshes, np.arange(len(meshes)), eye, names=[str(k) for k in range(len(meshes))])
+
+
+def morton_parts(vertices: np.ndarray, faces: np.ndarray, part_triangles: int) -> list[np.ndarray]:
+    """The triangles cut into parts of at most ``part_triangles``, consecutive in the
+    Morton order of their centres (30-bit codes over the mesh's box, on the host): each
+    part compact in space. ``int64`` triangle indices per part."""
+    p = vertices.astype(np.float64)[faces]
+    centre = p.mean(axis=1)
+    lo, hi = centre.min(axis=0), centre.max(axis=0)
+    cell = np.clip(((centre - lo) / np.where(hi > lo, hi - lo, 1) * 1024).astype(np.int64), 0, 1023)
+    code = np.zeros(len(faces), np.int64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((cell[:, axis] >> bit) & 1) << (3 * bit + 2 - axis)
+    order = np.argsort(code, kind="stable")
+    count = -(-len(faces) // part_triangles)
+    return np.array_split(order, count)
+
+
+def build_parts(vertices: Any, faces: Any = None, part_triangles: int = 1 << 24,
+                **options: Any) -> Scene:
+    """One mesh as a :class:`lbvh.Scene` of parts of at most ``part_triangles`` triangles
+    (consecutive in Morton order, :func:`morton_parts`), each built by :func:`build` with
+    ``options`` and placed by the identity; hits name the mesh's own triangles
+    (``Scene.face_ids``) and ``instance`` the part. :func:`build` does this by itself
+    for a mesh whose node buffer would pass the device's largest allocation."""
+    if isinstance(part_triangles, bool) or not isinstance(part_triangles, (int, np.integer)) \
+            or part_triangles < 1:
+        raise ValueError(f"part_triangles: {part_triangles!r}; expected a positive integer")
+    if isinstance(vertices, (str, os.PathLike)):
+        v, f = load_mesh(vertices)
+    else:
+        v, f = as_mesh(vertices, faces)
+    parts, meshes = morton_parts(v, f, int(part_triangles)), []
+    for part in parts:
+        used, local = np.unique(f[part], return_inverse=True)
+        meshes.append(build(v[used], local.reshape(-1, 3).astype(np.uint32), **options))
+    eye = np.tile(np.eye(3, 4), (len(parts), 1, 1))
+    return Scene(meshes, np.arange(len(parts)), eye, names=[f"part {k}" for k in range(len(parts))],
+                 face_ids=[p.astype(np.int32) for p in parts])
 
 
 def _build_lbvh(ctx: dev.Context, mesh: Mesh, upload: float, options: LBVHOptions,

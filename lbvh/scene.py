@@ -88,11 +88,15 @@ class Scene:
         transforms: ``float64 (I, 3, 4)`` object-to-world transforms (read-only view).
         ids: ``int64 (I,)`` the instances' ids; ``names`` their names (a trimesh
             scene's node names; default the ids as text).
+        face_ids: ``None``, or per mesh ``int32 (F_k,)``: the number hits give each of its
+            triangles instead of its index in the mesh (:func:`lbvh.api.build_parts`: the
+            parts of one mesh report the mesh's own triangle numbers).
         top: the top-level :class:`lbvh.BVH` over the instances' world boxes.
     """
 
     def __init__(self, meshes: Sequence[BVH], mesh_of: Any, transforms: Any,
-                 ids: Any = None, names: Sequence[str] | None = None) -> None:
+                 ids: Any = None, names: Sequence[str] | None = None,
+                 face_ids: Sequence[np.ndarray] | None = None) -> None:
         meshes = list(meshes)
         if not meshes:
             raise ValueError("meshes: none given")
@@ -126,6 +130,15 @@ class Scene:
         if names is not None and len(names) != len(which):
             raise ValueError(f"names: {len(names)} of them for {len(which)} instances")
         self.names = list(names) if names is not None else [str(x) for x in ids.tolist()]
+        if face_ids is not None:
+            if len(face_ids) != len(meshes):
+                raise ValueError(f"face_ids: {len(face_ids)} arrays for {len(meshes)} meshes")
+            face_ids = [np.asarray(x, np.int32) for x in face_ids]
+            for k, (m, x) in enumerate(zip(meshes, face_ids)):
+                if x.shape != (m.mesh.num_prims,):
+                    raise ValueError(f"face_ids: mesh {k} has {m.mesh.num_prims} triangles, "
+                                     f"its face_ids shape {x.shape}")
+        self.face_ids = face_ids
         self.meshes = meshes
         self.mesh_of = which.astype(np.int32)
         self.ids = ids.astype(np.int64)
@@ -150,7 +163,8 @@ class Scene:
             n["b"] += np.where(leaf, 0, node_base).astype(np.int32)
             nodes.append(n)
             order = np.asarray(bvh.prim_order)
-            orders.append(order)
+            # hits name the triangle within its mesh, or its face_ids entry (parts of one mesh)
+            orders.append(order if self.face_ids is None else self.face_ids[len(orders)][order])
             slot_faces.append((bvh.faces[order].astype(np.int64) + vertex_base).astype(np.uint32))
             verts.append(bvh.vertices)
             roots.append(node_base + bvh.root)
@@ -279,7 +293,8 @@ class Scene:
         """Pickling: the meshes (each :class:`lbvh.BVH` pickles its arrays), the instances
         and their transforms travel; unpickling builds the top level on the unpickling
         process's default device."""
-        return (Scene, (self.meshes, self.mesh_of, self._transforms, self.ids, self.names))
+        return (Scene, (self.meshes, self.mesh_of, self._transforms, self.ids, self.names,
+                        self.face_ids))
 
     def __repr__(self) -> str:
         return (f"<lbvh.Scene: {self.num_instances} instances of {len(self.meshes)} meshes, "

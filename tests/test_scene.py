@@ -157,3 +157,33 @@ def test_a_list_of_meshes():
 def test_bad_scenes_are_named(parts, make, fragment):
     with pytest.raises(ValueError, match=fragment):
         make(parts)
+
+
+def test_a_mesh_in_parts_answers_as_one_tree():
+    v, f = shipped_mesh("teapot.obj")
+    whole = lbvh.build(v, f)
+    parts = lbvh.build_parts(v, f, part_triangles=500)
+    assert parts.num_instances == -(-len(f) // 500) and parts.num_triangles == len(f)
+    assert sorted(np.concatenate(parts.face_ids).tolist()) == list(range(len(f)))
+    o, d = rays_at(v, f, 3000, 10)
+    got, want = parts.intersect(o, d), whole.intersect(o, d)
+    assert np.array_equal(got.t, want.t)             # the identity moves nothing
+    tie = got.prim != want.prim                      # another triangle only at the same t
+    assert tie.mean() < 0.01
+    assert np.array_equal(parts.occluded(o, d), whole.occluded(o, d))
+    # the barycentrics are of the mesh's own triangle
+    same = ~tie & want.mask
+    assert np.array_equal(got.u[same], want.u[same]) and np.array_equal(got.v[same], want.v[same])
+
+
+def test_a_mesh_beyond_the_largest_buffer_is_built_in_parts(monkeypatch):
+    """The device's largest allocation decides (read from the device; lowered here to
+    1,000 triangles' worth so that the teapot passes it)."""
+    from lbvh.builders import pipeline
+    v, f = shipped_mesh("teapot.obj")
+    monkeypatch.setattr(pipeline, "max_triangles", lambda ctx: 1000)
+    scene = lbvh.build(v, f)
+    assert isinstance(scene, lbvh.Scene) and scene.num_instances == -(-len(f) // 1000)
+    o, d = rays_at(v, f, 1000, 11)
+    monkeypatch.undo()
+    assert np.array_equal(scene.intersect(o, d).t, lbvh.build(v, f).intersect(o, d).t)

@@ -27,6 +27,17 @@ from .refit import refit_from_boxes
 from .restructure import restructure
 
 
+def max_triangles(ctx: dev.Context) -> int:
+    """The most triangles whose node buffer (32 bytes x (2F - 1)) fits the device's
+    largest allocation (read from the device)."""
+    return (int(ctx.device.max_mem_alloc_size) // 32 + 1) // 2
+
+
+def fits(ctx: dev.Context, num_triangles: int) -> bool:
+    """Whether a mesh of ``num_triangles`` builds in one tree on ``ctx``'s device."""
+    return num_triangles <= max_triangles(ctx)
+
+
 def check_fits(ctx: dev.Context, num_triangles: int) -> None:
     """Refuse, before any upload, a mesh whose node buffer exceeds the device's largest buffer."""
     node_bytes = 32 * (2 * num_triangles - 1)
