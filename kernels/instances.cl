@@ -28,6 +28,7 @@
  *                    triangles tested
  *   STACK_SIZE=n     entries of each level's stack; a push beyond n sets
  *                    FLAG_OVERFLOW and drops that subtree
+ *   EXACT_LEAVES=0   some mesh has spatial splits (see kernels/traverse.cl)
  *   TRIANGLE_TEST, SLAB_PAD, NO_FP64: kernels/ray_triangle.h
  */
 #include "common.h"
@@ -40,6 +41,9 @@
 #endif
 #ifndef STACK_SIZE
 #define STACK_SIZE 64
+#endif
+#ifndef EXACT_LEAVES
+#define EXACT_LEAVES 1
 #endif
 
 #include "ray_triangle.h"
@@ -109,7 +113,7 @@ inline int trace_mesh(__global const float4 *nodes, __global const float *vertic
         float next_entry = 0.0f;
         if (node_is_leaf(b)) {
             /* a leaf of one triangle is the triangle's own box (accept_hit) */
-            const float own = b == -1 ? entry : -1.0f;
+            const float own = EXACT_LEAVES && b == -1 ? entry : -1.0f;
             for (int s = a; s < a - b; ++s) {
                 ++*tested;
                 if (hit_triangle(vertices, 3 * (int)slot_faces[3 * s], 3 * (int)slot_faces[3 * s + 1],

@@ -40,6 +40,9 @@
  *   WIDE=0           read the tree's own nodes instead of the wide records
  *   WIDTH=4 or 8     children per wide record (kernels/wide.cl), default 8
  *   RAY_ORDER=1      trace the rays in the order order[] gives (ray_order.cl)
+ *   EXACT_LEAVES=0   leaves' boxes may be parts of their triangles' (spatial
+ *                    splits, lbvh/builders/sbvh.py): a leaf of one triangle is
+ *                    then not taken for the triangle's own box (accept_hit)
  *   ORDER_GLOBAL=1   visit nodes by increasing entry distance over all pending
  *                    nodes (a heap; Kay & Kajiya 1986) instead of ordered
  *                    depth first; closest hit only (see push)
@@ -66,6 +69,9 @@
 #endif
 #ifndef ORDER_GLOBAL
 #define ORDER_GLOBAL 0
+#endif
+#ifndef EXACT_LEAVES
+#define EXACT_LEAVES 1
 #endif
 
 #include "ray_triangle.h"
@@ -248,8 +254,9 @@ __kernel void traverse(__global const float4 *nodes, __global const float *recor
             int have_next = 0, next_x = 0, next_y = 0;
             float next_entry = 0.0f;
             if (node_is_leaf(y)) {
-                /* A leaf of one triangle is the triangle's own box (accept_hit) */
-                const float own = y == -1 ? x_entry : -1.0f;
+                /* A leaf of one triangle is the triangle's own box (accept_hit), unless
+                 * spatial splits clipped it (EXACT_LEAVES=0) */
+                const float own = EXACT_LEAVES && y == -1 ? x_entry : -1.0f;
                 for (int s = x; s < x - y; ++s) {
                     ++tested;
                     if (hit_triangle(vertices, 3 * (int)slot_faces[3 * s], 3 * (int)slot_faces[3 * s + 1],

@@ -1,7 +1,7 @@
 """lbvh: bounding volume hierarchies over triangle meshes, built by OpenCL kernels.
 
 Entry points:
-    lbvh.build(vertices, faces, builder="lbvh"|"sah"|"median"|"midpoint", device=None,
+    lbvh.build(vertices, faces, builder="lbvh"|"sah"|"median"|"midpoint"|"sbvh", device=None,
                collapse=False, options=None | lbvh.LBVHOptions | lbvh.SAHOptions
                | lbvh.SplitOptions, **fields) -> lbvh.BVH
     bvh.intersect(origins, directions) / bvh.occluded(...)  (ray queries) -> lbvh.Hits
@@ -39,7 +39,8 @@ The package, in layers (a module imports only from layers above it in this list)
 """
 from . import data
 from .api import build, build_parts, build_scene, load
-from .builders.options import CollapseOptions, LBVHOptions, SAHOptions, SplitOptions
+from .builders.options import (CollapseOptions, LBVHOptions, SAHOptions, SBVHOptions,
+                               SplitOptions)
 from .bvh import BVH
 from .scene import Scene
 from .device import CONTEXT_CHECKS, DeviceError
@@ -61,6 +62,6 @@ if _self_test not in CONTEXT_CHECKS:
     CONTEXT_CHECKS.append(_self_test)
 
 __all__ = ["build", "build_parts", "build_scene", "load", "BVH", "Scene", "Hits", "AllHits", "Closest", "Overlaps", "LBVHOptions",
-           "SAHOptions", "SplitOptions", "CollapseOptions",
+           "SAHOptions", "SplitOptions", "SBVHOptions", "CollapseOptions",
            "render", "Camera", "load_scene", "sah_cost", "tree_quality", "BVHValidationError",
            "DeviceError", "data", "__version__"]

@@ -16,10 +16,10 @@ from typing import Any
 import numpy as np
 
 from . import device as dev
-from .builders import pipeline, sah, topdown
+from .builders import pipeline, sah, sbvh, topdown
 from .builders.collapse import collapse
 from .builders.options import (SPLIT_BUILDERS, CollapseOptions, LBVHOptions, SAHOptions,
-                               SplitOptions, make, options_from)
+                               SBVHOptions, SplitOptions, make, options_from)
 from .bvh import SAVE_FORMAT_VERSION, BVH
 from .layout import NODE_DTYPE
 from .mesh import MissingFileError, as_mesh
@@ -40,7 +40,7 @@ DEFAULT = _Default()
 
 def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: Any = None,
           collapse: bool | CollapseOptions = False,
-          options: LBVHOptions | SAHOptions | SplitOptions | None = None,
+          options: LBVHOptions | SAHOptions | SplitOptions | SBVHOptions | None = None,
           key_bits: int | str | _Default = DEFAULT,
           auto_duplicate_fraction: float | _Default = DEFAULT,
           treelet_rounds: int | _Default = DEFAULT, c_node: float | _Default = DEFAULT,
@@ -55,7 +55,9 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
         faces: ``(F, 3)`` integer vertex indices.
         builder: ``"lbvh"`` (device, Karras 2012), ``"sah"`` (serial full-sweep SAH on
             the host, the reference), or the course's top-down object splits on the
-            host, ``"median"`` and ``"midpoint"`` (:mod:`lbvh.builders.topdown`).
+            host, ``"median"`` and ``"midpoint"`` (:mod:`lbvh.builders.topdown`), or
+            ``"sbvh"``, spatial splits (Stich et al. 2009, :mod:`lbvh.builders.sbvh`): a
+            triangle may sit in several leaves (see :class:`lbvh.SBVHOptions`).
         device: a device name (see :mod:`lbvh.device`), a ``pyopencl.Device``, or
             ``None`` for ``$LBVH_DEVICE`` / PoCL's CPU device.
         collapse: ``"lbvh"`` only: ``True`` or a :class:`lbvh.CollapseOptions`: after the
@@ -110,6 +112,10 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
         upload = time.perf_counter() - t0
         if builder == "sah":
             tree = sah.build_tree(ctx, mesh, build_options, progress)
+            tree.report.upload_seconds += upload
+            return BVH(mesh, tree)
+        if builder == "sbvh":
+            tree = sbvh.build_tree(ctx, mesh, build_options, progress)
             tree.report.upload_seconds += upload
             return BVH(mesh, tree)
         if builder in SPLIT_BUILDERS:

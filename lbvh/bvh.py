@@ -51,7 +51,8 @@ class BVH:
         prim_range: ``int32 (num_nodes, 2)``, ``(first, count)`` of leaves
         is_leaf:    ``bool (num_nodes,)``
         parent:     ``int32 (num_nodes,)``, ``-1`` for the root
-        prim_order: ``int32 (num_prims,)``, original triangle index of each slot
+        prim_order: ``int32 (num_slots,)``, original triangle index of each slot (a
+                    triangle has one slot, or several in a tree with spatial splits)
         root:       ``int``
         vertices:   ``float32 (V, 3)`` and faces: ``uint32 (F, 3)``, the mesh
     """
@@ -76,7 +77,9 @@ class BVH:
     ctx = property(lambda self: self.tree.ctx, doc="the :class:`lbvh.device.Context`")
     root = property(lambda self: self.tree.root, doc="index of the root node")
     num_nodes = property(lambda self: self.tree.num_nodes)
-    num_prims = property(lambda self: self.tree.num_prims)
+    num_prims = property(lambda self: self.mesh.num_prims, doc="triangles of the mesh")
+    num_slots = property(lambda self: self.tree.num_prims,
+                         doc="slots of prim_order: num_prims, or more with spatial splits")
     builder = property(lambda self: self.tree.builder, doc="what built the tree")
     build_report = property(lambda self: self.tree.report, doc="the build's figures, or None")
     nodes_buf = property(lambda self: self.tree.nodes, doc="device node records")
@@ -113,12 +116,15 @@ class BVH:
             raise BVHValidationError(f"invalid BVH: node {i} has child index {kids[i].tolist()} "
                                      f"outside [0, {len(nodes)})")
         parent = parents_of(nodes, root)
+        # a triangle in several slots: spatial splits (builder="sbvh")
+        clipped = len(prim_order) != len(faces) or builder.startswith("sbvh")
         if validate:
-            validate_tree(nodes, parent, prim_order, root, vertices, faces)
+            validate_tree(nodes, parent, prim_order, root, vertices, faces, clipped)
         ctx = dev.get_context(device)
         with ctx.lock:
             mesh = Mesh.upload(ctx, vertices, faces)
-            return cls(mesh, upload_tree(ctx, nodes, parent, prim_order, root, builder, report))
+            return cls(mesh, upload_tree(ctx, nodes, parent, prim_order, root, builder, report,
+                                         clipped_leaves=clipped))
 
     # -- numpy views ----------------------------------------------------------
     @dev.serialised
@@ -142,7 +148,7 @@ class BVH:
 
     nodes = property(lambda self: self._fetch("nodes"), doc="node records, NODE_DTYPE (num_nodes,)")
     parent = property(lambda self: self._fetch("parent"), doc="int32 (num_nodes,), -1 for the root")
-    prim_order = property(lambda self: self._fetch("prim_order"), doc="int32 (num_prims,)")
+    prim_order = property(lambda self: self._fetch("prim_order"), doc="int32 (num_slots,)")
     children = property(lambda self: self._fetch("children"), doc="int32 (num_nodes, 2)")
     prim_range = property(lambda self: self._fetch("prim_range"), doc="int32 (num_nodes, 2)")
     is_leaf = property(lambda self: self._fetch("is_leaf"), doc="bool (num_nodes,)")
@@ -163,7 +169,8 @@ class BVH:
     # -- checks and reports ---------------------------------------------------
     def validate(self) -> None:
         """Check every invariant of docs/layout.md; raise ``BVHValidationError`` on the first violation."""
-        validate_tree(self.nodes, self.parent, self.prim_order, self.root, self.vertices, self.faces)
+        validate_tree(self.nodes, self.parent, self.prim_order, self.root, self.vertices, self.faces,
+                      self.tree.clipped_leaves)
 
     def report(self) -> BuildReport:
         """Build timings and tree statistics (depth, leaves, ...), as data."""
@@ -231,6 +238,10 @@ class BVH:
         built on.  On a bad input nothing changes and the tree stays usable.
         Returns ``self``.
         """
+        if self.tree.clipped_leaves:
+            raise ValueError("refit: this tree has spatial splits (builder='sbvh'), whose leaf "
+                             "boxes are parts of triangles that a refit would not know; build "
+                             "it again")
         v = as_vertices(vertices)
         if v.shape != self.vertices.shape:
             raise ValueError(f"vertices: shape {v.shape}, the tree was built over {self.vertices.shape}")

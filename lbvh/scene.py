@@ -29,6 +29,7 @@ import numpy as np
 import pyopencl as cl
 
 from . import device as dev
+from .builders.bounds import round_outward
 from .builders.options import LBVHOptions
 from .builders.pipeline import build_tree
 from .bvh import BVH
@@ -69,14 +70,6 @@ def check_transforms(transforms: Any, count: int | None = None) -> np.ndarray:
         raise ValueError(f"transforms: instance {i} is singular (determinant {det[i]:.3g}): "
                          "it would flatten its mesh")
     return np.ascontiguousarray(t)
-
-
-def _outward(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """float64 boxes rounded outwards to float32."""
-    lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
-    lo32 = np.where(lo32 > lo, np.nextafter(lo32, np.float32(-np.inf)), lo32)
-    hi32 = np.where(hi32 < hi, np.nextafter(hi32, np.float32(np.inf)), hi32)
-    return lo32, hi32
 
 
 class Scene:
@@ -198,7 +191,7 @@ class Scene:
         corners = np.stack([np.where(np.array([(c >> k) & 1 for k in range(3)], bool), hi, lo)
                             for c in range(8)], axis=1)          # (meshes, 8, 3)
         world = np.einsum("ijk,imk->imj", a, corners[self.mesh_of]) + b[:, None, :]
-        wlo, whi = _outward(world.min(axis=1), world.max(axis=1))
+        wlo, whi = round_outward(world.min(axis=1), world.max(axis=1))
         # The top level: the pipeline over one "triangle" per instance, (lo, hi, hi),
         # whose box is the instance's world box and whose centre is the box's.
         v = np.stack([wlo, whi, whi], axis=1).reshape(-1, 3)
@@ -215,7 +208,8 @@ class Scene:
     def _buffers(self) -> SceneBuffers:
         return SceneBuffers(self.top.tree, self._inverse, self._inst_root, self._nodes,
                             self._num_nodes, self._prim_order, self._vertices, self._slot_faces,
-                            max(self._mesh_depth, self.top.traversal_depth()))
+                            max(self._mesh_depth, self.top.traversal_depth()),
+                            not any(m.tree.clipped_leaves for m in self.meshes))
 
     # -- what it holds -------------------------------------------------------------
     @property

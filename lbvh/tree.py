@@ -62,6 +62,9 @@ class Tree:
         leaf_nodes_buf: the same list on the device (``None`` with it).
         builder: the name of what made it (``"lbvh"``, ``"sah+collapse"``...).
         report: the build's figures, if it was built here.
+        clipped_leaves: the tree has spatial splits (``builder="sbvh"``): a triangle may
+            have several slots, and a leaf's box holds the parts of its triangles, not
+            their whole boxes (docs/layout.md).
     """
     ctx: Context
     nodes: cl.Buffer
@@ -74,6 +77,7 @@ class Tree:
     leaf_nodes: np.ndarray | None = None
     leaf_nodes_buf: cl.Buffer | None = None
     report: BuildReport | None = field(default=None, compare=False)
+    clipped_leaves: bool = False
 
     def leaf_walks(self) -> tuple[cl.Buffer | None, int, int]:
         """Where bottom-up walks start: ``(device leaf list or None, first leaf, leaf count)``."""
@@ -109,7 +113,8 @@ class Tree:
 
 
 def upload_tree(ctx: Context, nodes: np.ndarray, parent: np.ndarray, prim_order: np.ndarray,
-                root: int, builder: str, report: BuildReport | None = None) -> Tree:
+                root: int, builder: str, report: BuildReport | None = None,
+                clipped_leaves: bool = False) -> Tree:
     """A tree built on the host (``NODE_DTYPE`` nodes, ``int32`` parents and order),
     copied to the device; its leaf list is taken from the nodes."""
     leaves = np.flatnonzero(nodes["b"] < 0).astype(np.int32)
@@ -117,4 +122,4 @@ def upload_tree(ctx: Context, nodes: np.ndarray, parent: np.ndarray, prim_order:
     mem = ctx.memory
     return Tree(ctx, mem.upload(nodes, flags=rw), mem.upload(parent, flags=rw),
                 mem.upload(prim_order, flags=rw), int(root), len(nodes), len(prim_order), builder,
-                leaves, mem.upload(leaves), report)
+                leaves, mem.upload(leaves), report, clipped_leaves)

@@ -252,6 +252,12 @@ ROWS: list[Row] = [
         lambda e: _b(e, e.v, e.f, builder="sah", treelet_rounds=1), ValueError, "treelet_rounds"),
     Row("lbvh.build", "negative collapse cost", lambda e: _b(e, e.v, e.f, collapse=True, c_node=-1),
         ValueError, "c_node: -1"),
+    Row("lbvh.build", "sbvh alpha=2", lambda e: _b(e, e.v, e.f, builder="sbvh", alpha=2.0),
+        ValueError, "alpha: 2.0"),
+    Row("lbvh.build", "sbvh bins=1", lambda e: _b(e, e.v, e.f, builder="sbvh", bins=1),
+        ValueError, "bins: 1"),
+    Row("bvh.overlapping", "a tree of spatial splits", lambda e: lbvh.build(
+        e.v, e.f, builder="sbvh").overlapping(e.o, e.o + 1), ValueError, "spatial splits"),
     Row("lbvh.build", "median with collapse", lambda e: _b(e, e.v, e.f, builder="median", collapse=True),
         ValueError, "collapse: only for builder='lbvh'"),
     Row("lbvh.build", "midpoint with an SAH constant", lambda e: _b(e, e.v, e.f, builder="midpoint",

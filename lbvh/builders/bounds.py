@@ -48,3 +48,13 @@ def centroid_bounds_numpy(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray
     """Numpy twin: ``float32 (2, 3)``, min and max of the centres (exact)."""
     c = triangle_centres_numpy(vertices, faces)
     return np.stack([c.min(axis=0), c.max(axis=0)])
+
+
+def round_outward(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """float64 boxes rounded outwards to float32 (each corner to the nearest float32 on
+    the outside), so that the float32 box holds the float64 one."""
+    with np.errstate(over="ignore"):   # only where used: no finite float32 is beyond FLT_MAX
+        lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
+        lo32 = np.where(lo32 > lo, np.nextafter(lo32, np.float32(-np.inf)), lo32)
+        hi32 = np.where(hi32 < hi, np.nextafter(hi32, np.float32(np.inf)), hi32)
+    return lo32, hi32

@@ -153,6 +153,10 @@ def count_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0
     """
     batch = _check_batch(batch_size)
     rays = _rays(origins, directions, tmin, tmax, invalid_rays)
+    if target.tree.clipped_leaves:   # a triangle in several leaves: count it once
+        hits = _collect(target, rays, batch, None)
+        _raise_on_overflow(hits.overflow.astype(np.int32), "count_hits")
+        return hits.total.astype(np.int32)
     counts, flags = _run(target, rays, batch, None)[:2]
     _raise_on_overflow(flags, "count_hits")
     return counts.astype(np.int32)
@@ -184,14 +188,38 @@ def all_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0
     cap = _check_max_hits(max_hits)
     batch = _check_batch(batch_size)
     rays = _rays(origins, directions, tmin, tmax, invalid_rays)
-    total, flags, kept = _run(target, rays, batch, cap if cap is not None else -1)
-    counts = np.minimum(total, cap) if cap is not None else total
+    return _collect(target, rays, batch, cap)
+
+
+def _collect(target: QueryTarget, rays: Rays, batch: int, cap: int | None) -> AllHits:
+    """The hits of checked rays as :class:`AllHits`. In a tree with spatial splits a
+    triangle may be found in several leaves, with the same t, u, v (the same test of
+    the same ray and triangle): every hit but the first of each (ray, triangle) is
+    dropped, and ``max_hits`` applied after."""
+    dedupe = target.tree.clipped_leaves
+    total, flags, kept = _run(target, rays, batch, -1 if dedupe or cap is None else cap)
+    counts = np.minimum(total, cap) if cap is not None and not dedupe else total
     offsets = np.zeros(len(rays) + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
     t, prim, u, v = kept
     # nearest first, ties by triangle index: sort by (ray, t, prim)
     ray = np.repeat(np.arange(len(rays)), counts)
     order = np.lexsort((prim, t, ray))
+    if dedupe:
+        ray, t, prim, u, v = ray[order], t[order], prim[order], u[order], v[order]
+        pair = ray.astype(np.int64) * (int(prim.max(initial=0)) + 1) + prim
+        first = np.unique(pair, return_index=True)[1]
+        keep = np.zeros(len(pair), bool)
+        keep[first] = True
+        ray, t, prim, u, v = ray[keep], t[keep], prim[keep], u[keep], v[keep]
+        total = np.bincount(ray, minlength=len(rays)).astype(np.int64)
+        rank = np.arange(len(ray)) - np.repeat(np.cumsum(total) - total, total)
+        within = rank < cap if cap is not None else np.ones(len(ray), bool)
+        ray, t, prim, u, v = ray[within], t[within], prim[within], u[within], v[within]
+        counts = np.bincount(ray, minlength=len(rays)).astype(np.int64)
+        offsets = np.zeros(len(rays) + 1, np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        order = np.arange(len(ray))
     overflow = (flags & (FLAG_OVERFLOW | FLAG_VISIT_LIMIT)) != 0
     invalid = rays.invalid if rays.invalid is not None else np.zeros(len(rays), bool)
     return AllHits(offsets, t[order], prim[order], u[order], v[order], total.astype(np.int64),

@@ -45,7 +45,7 @@ class SceneBuffers:
     row, then c). ``inst_root``: ``int32 (I,)`` root node of each instance's mesh in
     ``nodes``. ``nodes``, ``prim_order``, ``vertices``, ``slot_faces``: every mesh's
     tree and faces one after the other, indices offset. ``depth``: the deepest tree
-    of both levels (the stack's size).
+    of both levels (the stack's size). ``exact_leaves``: no mesh has spatial splits.
     """
     top: Tree
     inverse: cl.Buffer
@@ -56,6 +56,7 @@ class SceneBuffers:
     vertices: cl.Buffer
     slot_faces: cl.Buffer
     depth: int
+    exact_leaves: bool = True
 
 
 @dataclass
@@ -124,6 +125,8 @@ def intersect_scene(ctx: dev.Context, buffers: SceneBuffers, ids: np.ndarray,
     count = np.zeros((len(part), 2), np.int32)
     defines = kernel_defines(ctx, any_hit, triangle_test, counters,
                              stack_bucket(buffers.depth + 1))
+    if not buffers.exact_leaves:
+        defines["EXACT_LEAVES"] = 0
     lo, hi, stride = part.kernel_intervals()
     mem, top = ctx.memory, buffers.top
     for start in range(0, len(part), int(batch_size)):

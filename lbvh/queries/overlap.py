@@ -104,6 +104,10 @@ def overlapping(target: QueryTarget, lower: Any, upper: Any) -> Overlaps:
         ValueError: a bad box (named).
         lbvh.DeviceError: the answer would not fit the device's largest buffer.
     """
+    if target.tree.clipped_leaves:
+        raise ValueError("overlapping: this tree has spatial splits (builder='sbvh'): its leaves "
+                         "hold parts of triangles, not their boxes; build another tree for box "
+                         "queries")
     lo, hi = check_boxes(lower, upper)
     n = len(lo)
     ctx, tree, mem = target.ctx, target.tree, target.ctx.memory

@@ -402,7 +402,9 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
                  defines={**kernel_defines(ctx, any_hit, triangle_test, counters, stack_size,
                                           node_order),
                           "WIDE": int(wide.packed), "WIDTH": wide.width,
-                          "RAY_ORDER": int(order is not None), **(defines or {})},
+                          "RAY_ORDER": int(order is not None),
+                          **({"EXACT_LEAVES": 0} if tree.clipped_leaves else {}),
+                          **(defines or {})},
                  wait_for=wait_for)
     return DeviceHits(count, hits, flags, counter_buf if counters else None, ev)
 

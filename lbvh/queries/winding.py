@@ -147,6 +147,10 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
         ValueError: a bad point (named), ``beta`` or ``batch_size``.
         RuntimeError: the traversal stack overflowed (a tree deeper than 768 levels).
     """
+    if target.tree.clipped_leaves:
+        raise ValueError("winding_numbers: this tree has spatial splits (builder='sbvh'), whose "
+                         "nodes would count a split triangle more than once; build another tree "
+                         "for inside tests and signed distance")
     p = check_points(points)
     beta2 = _check_beta(beta)
     if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \

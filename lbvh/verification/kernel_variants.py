@@ -124,10 +124,12 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
             # listed for both kinds, as wide.cl, which bvh.wide_records(width=) compiles for
             # either), or the binary nodes (WIDE=0, where records would not fit) with
             # the record width still set
+            # trees with spatial splits (builder="sbvh") add EXACT_LEAVES=0
             for extra in _product(WIDE=(1, 0), WIDTH=wide.WIDTHS, RAY_ORDER=(0, 1)):
-                add(traverse.KERNEL_FILE, {**base, **extra})
-                if not any_hit:   # intersect(order="global"): closest hits only
-                    add(traverse.KERNEL_FILE, {**base, **extra, "ORDER_GLOBAL": 1})
+                for clipped in ({}, {"EXACT_LEAVES": 0}):
+                    add(traverse.KERNEL_FILE, {**base, **extra, **clipped})
+                    if not any_hit:   # intersect(order="global"): closest hits only
+                        add(traverse.KERNEL_FILE, {**base, **extra, **clipped, "ORDER_GLOBAL": 1})
     # device_rays.cl: the checks and marks (no defines), the result's arrays, and
     # the conversion of each element type lbvh reads from pyopencl arrays
     add(rays.DEVICE_KERNEL_FILE, {})
@@ -152,7 +154,9 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     for ctx in ctxs:
         for any_hit, counters, test, stack in itertools.product(
                 (False, True), (False, True), traverse.TRIANGLE_TESTS, traverse.STACK_BUCKETS):
-            add(instances.KERNEL_FILE, traverse.kernel_defines(ctx, any_hit, test, counters, stack))
+            for clipped in ({}, {"EXACT_LEAVES": 0}):
+                add(instances.KERNEL_FILE, {**traverse.kernel_defines(ctx, any_hit, test, counters,
+                                                                      stack), **clipped})
     # winding.cl: one stack size per bucket
     for stack in traverse.STACK_BUCKETS:
         add(winding.KERNEL_FILE, {"STACK_SIZE": stack})

@@ -28,6 +28,7 @@ BUILDERS: dict[str, dict[str, Any]] = {
     "sah": {"builder": "sah"},
     "median": {"builder": "median"},
     "midpoint": {"builder": "midpoint"},
+    "sbvh": {"builder": "sbvh"},
 }
 
 #: Builders that cannot run a case in reasonable time, with the reason (reported, not run).
@@ -39,6 +40,8 @@ SKIPS: dict[tuple[str, str], str] = {
                                        "would need 10+ GB (its device counterpart is the LBVH)",
     ("over_2_24_triangles", "midpoint"): "the host reference's sorts of 2^24 centres per level "
                                          "would need 10+ GB (its device counterpart is the LBVH)",
+    ("over_2_24_triangles", "sbvh"): "the host SBVH builds about 5,000 triangles a second: "
+                                     "an hour for 2^24",
 }
 
 

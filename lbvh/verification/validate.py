@@ -24,10 +24,17 @@ def _first(mask: np.ndarray) -> int:
 
 
 def validate_tree(nodes: np.ndarray, parent: np.ndarray, prim_order: np.ndarray, root: int,
-                  vertices: np.ndarray, faces: np.ndarray) -> None:
-    """Check every invariant of docs/layout.md; raise on the first violation."""
+                  vertices: np.ndarray, faces: np.ndarray, clipped_leaves: bool = False) -> None:
+    """Check every invariant of docs/layout.md; raise on the first violation.
+
+    ``clipped_leaves``: a tree with spatial splits (``builder="sbvh"``): a triangle may
+    have several slots (at least one), and a leaf's box holds the parts of its
+    triangles: it must meet each one's box, and every triangle's corners, edge
+    midpoints and centre must lie in the box of some leaf that holds it.
+    """
     num_nodes = len(nodes)
-    num_prims = len(faces)
+    num_tris = len(faces)
+    num_prims = len(prim_order) if clipped_leaves else num_tris
     if num_nodes == 0:
         _fail("no nodes")
     if not 0 <= root < num_nodes:
@@ -82,11 +89,12 @@ def validate_tree(nodes: np.ndarray, parent: np.ndarray, prim_order: np.ndarray,
     # 3. primitives: a permutation, tiled exactly by the leaves' ranges
     if prim_order.shape != (num_prims,):
         _fail(f"prim_order has shape {prim_order.shape}, expected ({num_prims},)")
-    if num_prims and (prim_order.min() < 0 or prim_order.max() >= num_prims):
-        _fail(f"prim_order holds indices outside [0, {num_prims})")
-    hits = np.bincount(prim_order.astype(np.int64), minlength=num_prims)
-    if (hits != 1).any():
-        t = _first(hits != 1)
+    if num_prims and (prim_order.min() < 0 or prim_order.max() >= num_tris):
+        _fail(f"prim_order holds indices outside [0, {num_tris})")
+    hits = np.bincount(prim_order.astype(np.int64), minlength=num_tris)
+    wrong_count = hits < 1 if clipped_leaves else hits != 1
+    if wrong_count.any():
+        t = _first(wrong_count)
         _fail(f"triangle {t} appears {hits[t]} times in prim_order")
     ranges = prim_range_of(nodes)[leaf]
     leaf_ids = np.flatnonzero(leaf)
@@ -116,6 +124,9 @@ def validate_tree(nodes: np.ndarray, parent: np.ndarray, prim_order: np.ndarray,
             i = _first(outside)
             _fail(f"node {internal[i]} box does not contain its {name} child {c[i]}")
     tlo, thi = triangle_boxes_numpy(vertices, faces)
+    if clipped_leaves:
+        _check_clipped_leaves(nodes, prim_order, leaf_ids, ranges, vertices, faces, tlo, thi)
+        return
     slot_lo, slot_hi = tlo[prim_order], thi[prim_order]
     first = ranges[:, 0]
     leaf_lo = np.minimum.reduceat(slot_lo, first[order], axis=0)
@@ -126,3 +137,37 @@ def validate_tree(nodes: np.ndarray, parent: np.ndarray, prim_order: np.ndarray,
         i = _first(wrong)
         _fail(f"leaf {ids[i]} box {lo[ids[i]].tolist()}..{hi[ids[i]].tolist()} is not the exact "
               f"box of its triangles {leaf_lo[i].tolist()}..{leaf_hi[i].tolist()}")
+
+
+def _check_clipped_leaves(nodes: np.ndarray, prim_order: np.ndarray, leaf_ids: np.ndarray,
+                          ranges: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
+                          tlo: np.ndarray, thi: np.ndarray) -> None:
+    """The leaves of a tree with spatial splits: each slot's leaf box meets its triangle's
+    box, and each triangle's seven sample points lie in the box of one of its leaves."""
+    counts = ranges[:, 1].astype(np.int64)
+    leaf_of_slot = np.empty(len(prim_order), np.int64)
+    leaf_of_slot[np.repeat(ranges[:, 0].astype(np.int64), counts) + _within(counts)] = \
+        np.repeat(leaf_ids, counts)
+    lo, hi = nodes["lower"][leaf_of_slot], nodes["upper"][leaf_of_slot]
+    t = prim_order.astype(np.int64)
+    apart = ((lo > thi[t]) | (hi < tlo[t])).any(axis=1)
+    if apart.any():
+        s = _first(apart)
+        _fail(f"leaf {leaf_of_slot[s]} holds triangle {t[s]} but its box does not meet the "
+              "triangle's")
+    p = vertices.astype(np.float64)[faces.astype(np.int64)]
+    samples = np.concatenate([p, 0.5 * (p + p[:, [1, 2, 0]]), p.mean(axis=1, keepdims=True)],
+                             axis=1)                                  # (F, 7, 3)
+    inside = ((samples[t] >= lo[:, None].astype(np.float64)) &
+              (samples[t] <= hi[:, None].astype(np.float64))).all(axis=2)   # (R, 7)
+    covered = np.zeros((len(faces), 7), bool)
+    np.logical_or.at(covered, t, inside)
+    missing = ~covered.all(axis=1)
+    if missing.any():
+        i = _first(missing)
+        _fail(f"triangle {i} has a point in no box of the leaves that hold it")
+
+
+def _within(counts: np.ndarray) -> np.ndarray:
+    """Offsets 0, 1, ... inside each leaf's range, leaf by leaf."""
+    return np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)

@@ -106,8 +106,6 @@ def test_a_missing_or_empty_file_names_itself(tmp_path):
 
 
 @pytest.mark.parametrize("make, message", [
-    (lambda t: t.Scene([t.creation.box(), t.creation.icosphere()]),
-     r"a trimesh.Scene of 2 geometries .* scene.to_mesh\(\)"),
     (lambda t: t.PointCloud(GOOD_V), "a trimesh.PointCloud has vertices but no faces"),
     (lambda t: 42, "got a int alone; pass vertices and faces"),
     (lambda t: GOOD_V, "got a numpy.ndarray alone; pass vertices and faces"),
@@ -116,6 +114,15 @@ def test_what_was_passed_is_named_with_what_to_pass(make, message):
     import trimesh
     with pytest.raises(ValueError, match=message):
         lbvh.build(make(trimesh))
+
+
+def test_a_trimesh_scene_becomes_a_scene_of_instances_and_as_mesh_says_how():
+    import trimesh
+    source = trimesh.Scene([trimesh.creation.box(), trimesh.creation.icosphere()])
+    assert isinstance(lbvh.build(source), lbvh.Scene)
+    from lbvh.mesh import as_mesh
+    with pytest.raises(ValueError, match=r"a trimesh.Scene of 2 geometries .* scene.to_mesh\(\)"):
+        as_mesh(source)
 
 
 def test_a_mesh_with_its_faces_again_says_pass_it_alone():

@@ -93,30 +93,37 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
              lbvh.build(v, f, device=ctx, collapse=True),
              lbvh.build(v, f, device=ctx, treelet_rounds=2),
              lbvh.build(v, f, device=ctx, treelet_rounds=1, collapse=True, max_leaf_size=4),
-             lbvh.build(v, f, device=ctx, builder="sah")]
+             lbvh.build(v, f, device=ctx, builder="sah"),
+             lbvh.build(v, f, device=ctx, builder="sbvh")]
     assert trees[3].build_report.key_bits == 63 and trees[2].build_report.key_bits == 30
     for bvh in trees:
+        clipped = bvh.tree.clipped_leaves   # no box queries, winding or refit on an SBVH
         for test in ("watertight", "moller"):
             for counters in (False, True):
                 bvh.intersect(o, d, triangle_test=test, counters=counters)
                 bvh.occluded(o, d, triangle_test=test, counters=counters)
         bvh.closest_points(o)
-        bvh.overlapping(o, o + np.float32(0.1))
+        if not clipped:
+            bvh.overlapping(o, o + np.float32(0.1))
         bvh.intersect(o, d, order="global", counters=True)
         bvh.intersect(o, d, order="global", triangle_test="moller")
         bvh.count_hits(o, d)
         bvh.all_hits(o, d, max_hits=2)
         segment_work(bvh, o, d)
+        if clipped:
+            continue
         bvh.signed_distance(o)
         bvh.refit(v * np.float32(1.25) if len(bvh.vertices) == len(v) else bvh.vertices * 2)
         bvh.intersect(o, d)
     collapse_leaves(trees[7])
-    # a scene of instances: closest and any hit, counters, both triangle tests
-    scene = lbvh.Scene(trees[:2], [0, 1, 0], np.tile(np.eye(3, 4), (3, 1, 1)) * 1.5)
-    for test in ("watertight", "moller"):
-        scene.intersect(o, d, triangle_test=test, counters=True)
-        scene.intersect(o, d, triangle_test=test)
-        scene.occluded(o, d, triangle_test=test)
+    # scenes of instances: closest and any hit, counters, both triangle tests; with a mesh
+    # of spatial splits too
+    for parts in (trees[:2], [trees[0], trees[8]]):
+        scene = lbvh.Scene(parts, [0, 1, 0], np.tile(np.eye(3, 4), (3, 1, 1)) * 1.5)
+        for test in ("watertight", "moller"):
+            scene.intersect(o, d, triangle_test=test, counters=True)
+            scene.intersect(o, d, triangle_test=test)
+            scene.occluded(o, d, triangle_test=test)
     # Wide records of both widths, and the binary walk where records would not fit.
     bvh = trees[0]
     for width in WIDTHS:
