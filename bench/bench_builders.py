@@ -102,7 +102,10 @@ CHART_RAYS = 10_000_000
 REFERENCE = "sah"
 #: Families of our trees (traced by our kernel): the device LBVH, the host top-down
 #: median / midpoint splits and the SAH reference.
-OUR_FAMILIES = ("lbvh", "topdown", "sah")
+OUR_FAMILIES = ("lbvh", "topdown", "sbvh", "sah")
+#: The host SBVH builds about 4,500 triangles a second (Sponza, 262K: 56 s): scenes
+#: above this size leave it out (a 1M-triangle scene would take about 4 minutes a build).
+SBVH_MAX_TRIANGLES = 400_000
 #: Cost constants of the collapse and of the SAH reference (the same for both).
 SAH_OPTIONS = {"c_node": C_NODE, "c_tri": C_TRI, "max_leaf_size": MAX_LEAF_SIZE}
 
@@ -133,6 +136,7 @@ def our_variants() -> list[Variant]:
                        {**treelets, "collapse": True, **SAH_OPTIONS}))
     for rule in ("median", "midpoint"):
         out.append(Variant(rule, "topdown", {"builder": rule}))
+    out.append(Variant("sbvh", "sbvh", {"builder": "sbvh", **SAH_OPTIONS}))
     out.append(Variant(REFERENCE, "sah", {"builder": "sah", **SAH_OPTIONS}))
     return out
 
@@ -707,7 +711,8 @@ PEER_LINES = ("-", "--", ":", "-.", (0, (5, 1, 1, 1)))
 
 
 #: Colour and marker of the builders that are not LBVH variants.
-HOST_STYLES = {"median": ("C5", "^"), "midpoint": ("C6", "v"), REFERENCE: ("C3", "*")}
+HOST_STYLES = {"median": ("C5", "^"), "midpoint": ("C6", "v"), "sbvh": ("C9", "P"),
+               REFERENCE: ("C3", "*")}
 
 
 def point_style(name: str, family: str) -> dict:
@@ -817,7 +822,8 @@ def main(argv: list[str] | None = None) -> dict:
 
     for scene in loaded_scenes(args.scene_names, load, progress, steps_per_scene(args.repeats),
                                skipped):
-        contestants = [Contestant(v, builders[v.family]) for v in variants]
+        contestants = [Contestant(v, builders[v.family]) for v in variants
+                       if v.family != "sbvh" or len(scene.faces) <= SBVH_MAX_TRIANGLES]
         summary, scene_rows = bench_scene(scene, contestants, settings, progress, out / "views")
         scenes.append(summary)
         rows += scene_rows
