@@ -188,31 +188,18 @@ def options_from(builder: str, collapse: "bool | CollapseOptions", given: dict[s
         return own, collapse
     if not isinstance(collapse, (bool, np.bool_)):
         raise ValueError(f"collapse: {collapse!r}; expected True, False or a CollapseOptions")
-    if builder == "sbvh":
-        if collapse:
-            raise ValueError("collapse: only for builder='lbvh' (the SBVH builder already makes "
-                             "multi-triangle leaves)")
-        lbvh_only = set(given) & field_names(LBVHOptions)
-        if lbvh_only:
-            raise ValueError(f"{', '.join(sorted(lbvh_only))}: only for builder='lbvh'")
-        return make(SBVHOptions, given, "the sbvh builder"), None
-    if builder in SPLIT_BUILDERS:
+    if builder == "sbvh" or builder in SPLIT_BUILDERS:
         if collapse:
             raise ValueError(f"collapse: only for builder='lbvh' (the {builder} builder makes "
                              "leaves of max_leaf_size)")
-        lbvh_only = set(given) & field_names(LBVHOptions)
-        if lbvh_only:
-            raise ValueError(f"{', '.join(sorted(lbvh_only))}: only for builder='lbvh'")
-        return make(SplitOptions, given, f"the {builder} builder"), None
+        _host_builder_ignores_lbvh_options(builder, given)
+        cls = SBVHOptions if builder == "sbvh" else SplitOptions
+        return make(cls, given, f"the {builder} builder"), None
     if builder == "sah":
         if collapse:
             raise ValueError("collapse: only for builder='lbvh' (the SAH builder already makes "
                              "multi-triangle leaves)")
-        # the LBVH's own options are checked, and have no effect on the reference
-        lbvh_only = LBVHOptions(**{k: given.pop(k) for k in field_names(LBVHOptions) & set(given)})
-        if lbvh_only.treelet_rounds:
-            raise ValueError("treelet_rounds: only for builder='lbvh' (the SAH builder's tree "
-                             "is the reference)")
+        _host_builder_ignores_lbvh_options("sah", given)
         return make(SAHOptions, given, "the sah builder"), None
     own = {k: v for k, v in given.items() if k in field_names(LBVHOptions)}
     rest = {k: v for k, v in given.items() if k not in own}
@@ -222,3 +209,13 @@ def options_from(builder: str, collapse: "bool | CollapseOptions", given: dict[s
             raise ValueError(f"unknown option(s) for the lbvh builder: {', '.join(sorted(rest))}")
         return options, None
     return options, make(CollapseOptions, rest, "the leaf collapse")
+
+
+def _host_builder_ignores_lbvh_options(builder: str, given: dict[str, Any]) -> None:
+    """The LBVH's own options, given to a host builder (the command line passes its
+    defaults to every builder): checked, then dropped from ``given``; treelet rounds,
+    which would change the tree, are refused."""
+    lbvh_only = LBVHOptions(**{k: given.pop(k) for k in field_names(LBVHOptions) & set(given)})
+    if lbvh_only.treelet_rounds:
+        raise ValueError(f"treelet_rounds: only for builder='lbvh' (the {builder} builder's "
+                         "tree is its own)")

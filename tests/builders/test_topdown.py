@@ -100,7 +100,7 @@ def test_through_build(rule):
 
 
 @pytest.mark.parametrize("kwargs, fragment", [
-    ({"collapse": True}, "collapse"), ({"key_bits": 63}, "key_bits"),
+    ({"collapse": True}, "collapse"), ({"treelet_rounds": 1}, "treelet_rounds"),
     ({"c_node": 2.0}, "c_node"), ({"max_leaf_size": 0}, "max_leaf_size: 0")])
 def test_bad_options(kwargs, fragment):
     v, f = random_soup(50, seed=1)
