@@ -40,6 +40,7 @@ from .rendering.camera import (DEFAULT_FOV, DEFAULT_SIZE, MAX_SIDE, Camera, fram
 from .rendering.image import image_kind
 from .rendering.render import AO_SAMPLES, MODES, check_mode, render
 from .rendering.scene import Scene, find_scene, load_scene
+from .scene import Scene as LbvhScene
 from .verification import selftest
 from .verification.check import add_arguments as add_check_arguments
 from .verification.check import cmd_check as run_checks
@@ -154,9 +155,23 @@ def _add_build_options(p: argparse.ArgumentParser) -> None:
 
 
 def _build(scene, args: argparse.Namespace):
-    """The tree the build options ask for."""
+    """The tree the build options ask for; for a file that places several meshes, an
+    :class:`lbvh.Scene` of its instances (each mesh built once with those options)."""
+    source = scene.extras.get("instances")
+    if source is not None:
+        return build(source, builder=args.builder, collapse=args.collapse,
+                     treelet_rounds=args.treelets, key_bits=args.keys, device=args.device)
     return build(scene.vertices, scene.faces, builder=args.builder, collapse=args.collapse,
                  treelet_rounds=args.treelets, key_bits=args.keys, device=args.device)
+
+
+def _one_mesh(bvh, what: str):
+    """``bvh`` itself, or a clear error where a command takes one mesh and got a scene."""
+    if isinstance(bvh, LbvhScene):
+        raise ValueError(f"{what}: the file places {bvh.num_instances} instances of "
+                         f"{len(bvh.meshes)} meshes; this command takes one mesh for now "
+                         "(flatten it, e.g. with trimesh's to_mesh())")
+    return bvh
 
 
 def _scene_name(text: str) -> str:
@@ -168,6 +183,8 @@ def _scene_name(text: str) -> str:
 def cmd_info(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene)
     bvh = _build(scene, args)
+    if isinstance(bvh, LbvhScene):
+        return _info_scene(args, bvh)
     if args.validate:
         bvh.validate()
     report = bvh.report()
@@ -178,6 +195,32 @@ def cmd_info(args: argparse.Namespace) -> int:
         print(report)
         if args.validate:
             print("validate:    ok")
+    return 0
+
+
+def _info_scene(args: argparse.Namespace, scene) -> int:
+    """``lbvh info`` of a file placing several meshes: its instances and meshes."""
+    if args.validate:
+        for m in scene.meshes:
+            m.validate()
+        scene.top.validate()
+    meshes = [{"triangles": m.num_prims, "nodes": m.num_nodes, "builder": m.builder,
+               "depth": m.report().depth} for m in scene.meshes]
+    summary = {"scene": _scene_name(args.scene), "instances": scene.num_instances,
+               "meshes": meshes, "triangles_in_world": scene.num_triangles,
+               "instance_names": scene.names, "instance_mesh": scene.mesh_of.tolist()}
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    print(f"scene:       {summary['scene']}")
+    print(f"instances:   {scene.num_instances} of {len(meshes)} meshes, "
+          f"{scene.num_triangles:,} triangles in world space")
+    for k, m in enumerate(meshes):
+        placed = [n for n, i in zip(scene.names, scene.mesh_of) if i == k]
+        print(f"mesh {k}:      {m['triangles']:,} triangles, {m['nodes']:,} nodes, depth "
+              f"{m['depth']} ({m['builder']}), placed as {', '.join(placed)}")
+    if args.validate:
+        print("validate:    ok")
     return 0
 
 
@@ -282,7 +325,7 @@ def cmd_query(args: argparse.Namespace) -> int:
     reads, writes = QUERY_KINDS[args.kind]
     data = _read_points(args.input) if reads == "points" else _read_rays(args.input)
     scene = load_scene(args.scene)
-    bvh = _build(scene, args)
+    bvh = _one_mesh(_build(scene, args), f"query {args.kind}")
     start = time.perf_counter()
     arrays, fields, lines = _run_query(bvh, args.kind, data, args)
     seconds = time.perf_counter() - start
@@ -324,14 +367,20 @@ def cmd_render(args: argparse.Namespace) -> int:
     result = render(bvh, camera, args.mode, ao_samples=args.ao_samples,
                     triangle_test=args.triangle_test, order=args.order)
     result.save(args.output)
-    report = bvh.report()
-    device_time = f" (device {report.device_seconds * 1e3:.1f} ms)" if report.device_seconds else ""
     hits = int((result.primary_hits.prim >= 0).sum())
-    print(f"scene:     {_scene_name(args.scene)}: {bvh.num_prims:,} triangles")
+    if isinstance(bvh, LbvhScene):
+        print(f"scene:     {_scene_name(args.scene)}: {bvh.num_instances} instances of "
+              f"{len(bvh.meshes)} meshes, {bvh.num_triangles:,} triangles in world space")
+        built = f"{len(bvh.meshes)} meshes and the top level"
+    else:
+        report = bvh.report()
+        device_time = f" (device {report.device_seconds * 1e3:.1f} ms)" if report.device_seconds else ""
+        print(f"scene:     {_scene_name(args.scene)}: {bvh.num_prims:,} triangles")
+        built = f"depth {report.depth}"
     print(f"camera:    {camera_source}: {describe_camera(camera)}")
     print(f"device:    {bvh.ctx.name}")
-    print(f"build:     {args.builder} in {build_seconds * 1e3:.1f} ms{device_time}, "
-          f"depth {report.depth}")
+    print(f"build:     {args.builder} in {build_seconds * 1e3:.1f} ms"
+          f"{device_time if not isinstance(bvh, LbvhScene) else ''}, {built}")
     order = "" if args.order == "ordered" else f", {args.order} order"
     print(f"render:    {args.mode} {camera.width}x{camera.height} ({args.triangle_test}{order}) in "
           f"{result.total_seconds * 1e3:.1f} ms, of which first calls (kernel compile) "

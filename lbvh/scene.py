@@ -245,7 +245,9 @@ class Scene:
     def flattened(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The one mesh the scene stands for: ``float32 (V, 3)`` vertices (every
         instance's, transformed in float64), ``uint32 (F, 3)`` faces and ``int32 (F,)``
-        the instance of each face; an instance's faces in its mesh's order."""
+        the instance of each face; instance by instance, each one's faces in its mesh's
+        order (with ``face_ids``, the parts of one mesh: that mesh's order).
+        :meth:`flat_prim` maps hits to these faces."""
         verts, faces, owner = [], [], []
         base = 0
         for i, m in enumerate(self.mesh_of):
@@ -255,15 +257,33 @@ class Scene:
             faces.append(mesh.faces.astype(np.int64) + base)
             owner.append(np.full(mesh.num_prims, i, np.int32))
             base += len(mesh.vertices)
-        return (np.concatenate(verts).astype(np.float32), np.concatenate(faces).astype(np.uint32),
-                np.concatenate(owner))
+        v = np.concatenate(verts).astype(np.float32)
+        f, who = np.concatenate(faces).astype(np.uint32), np.concatenate(owner)
+        if self.face_ids is not None:   # the mesh's own order
+            where = np.concatenate([self.face_ids[m] for m in self.mesh_of])
+            back = np.empty_like(where)
+            back[where] = np.arange(len(where))
+            f, who = f[back], who[back]
+        return v, f, who
+
+    def flat_prim(self, hits: SceneHits) -> np.ndarray:
+        """``int64 (N,)``: each hit's face in :meth:`flattened`'s faces, ``-1`` on a miss."""
+        if self.face_ids is not None:
+            return np.where(hits.mask, hits.prim, -1).astype(np.int64)
+        counts = np.array([self.meshes[m].num_prims for m in self.mesh_of], np.int64)
+        base = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        return np.where(hits.mask, base[np.maximum(hits.instance, 0)] + hits.prim, -1)
 
     # -- ray queries ---------------------------------------------------------------
     def intersect(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
                   triangle_test: str = "watertight", counters: bool = False,
-                  batch_size: int = 1 << 20, invalid_rays: InvalidRays = "raise") -> SceneHits:
+                  batch_size: int = 1 << 20, invalid_rays: InvalidRays = "raise",
+                  order: str = "ordered") -> SceneHits:
         """Closest hit of each ray in ``[tmin, tmax]``: :class:`SceneHits` (arguments as
-        :meth:`lbvh.BVH.intersect`'s)."""
+        :meth:`lbvh.BVH.intersect`'s; ``order``: ``"ordered"`` only, the scene kernel
+        has no global order)."""
+        if order != "ordered":
+            raise ValueError(f"order: {order!r}; a scene's traversal is 'ordered' only")
         with self.ctx.lock:
             return intersect_scene(self.ctx, self._buffers(), self.ids, self.mesh_of, origins,
                                    directions, tmin, tmax, triangle_test=triangle_test,

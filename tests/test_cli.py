@@ -389,3 +389,48 @@ def test_render_global_order_gives_the_same_image(capsys, tmp_path):
     assert "global order" in capsys.readouterr().out
     from lbvh.rendering.image import read_image
     assert np.array_equal(read_image(tmp_path / "a.exr"), read_image(tmp_path / "b.exr"))
+
+
+def _placed_meshes_file(path) -> None:
+    import trimesh
+    source = trimesh.Scene()
+    box = trimesh.creation.box()
+    source.add_geometry(box, geom_name="box", node_name="left",
+                        transform=trimesh.transformations.translation_matrix([-1.5, 0, 0]))
+    source.graph.update(frame_to="right", geometry="box",
+                        matrix=trimesh.transformations.translation_matrix([1.5, 0, 0])
+                        @ trimesh.transformations.rotation_matrix(0.6, [0, 1, 0]))
+    source.add_geometry(trimesh.creation.icosphere(), geom_name="ball", node_name="ball",
+                        transform=trimesh.transformations.translation_matrix([0, 1.6, 0]))
+    source.export(str(path))
+
+
+def test_a_file_of_placed_meshes_keeps_its_instances(capsys, tmp_path):
+    import lbvh
+    from lbvh.rendering.image import read_image
+    from lbvh.rendering.render import render_reference
+    from lbvh.rendering.scene import load_scene
+    path = tmp_path / "two.glb"
+    _placed_meshes_file(path)
+    assert main(["info", str(path), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["instances"] == 3 and len(info["meshes"]) == 2   # the box is built once
+    assert sorted(info["instance_names"]) == ["ball", "left", "right"]
+    out = tmp_path / "depth.exr"
+    assert main(["render", str(path), "-o", str(out), "--size", "64x48", "--mode", "depth"]) == 0
+    assert "3 instances of 2 meshes" in capsys.readouterr().out
+    scene = load_scene(path)
+    assert isinstance(lbvh.build(scene.extras["instances"]), lbvh.Scene)
+    from lbvh.cli import choose_camera, parse_size
+    import argparse
+    args = argparse.Namespace(eye=None, target=None, up=None, fov=None, view=None, views=None)
+    camera, _ = choose_camera(args, scene, parse_size("64x48"))   # the view the render used
+    want = render_reference(scene.vertices, scene.faces, camera, "depth")
+    got = read_image(out)
+    hit = np.isfinite(want) & np.isfinite(got)
+    assert (np.isfinite(want) == np.isfinite(got)).mean() > 0.99
+    assert np.allclose(got[hit], want[hit], rtol=1e-4)
+    # point queries take one mesh: a clear error, exit 2
+    np.save(tmp_path / "p.npy", np.zeros((2, 3), np.float32))
+    assert main(["query", "closest", str(path), str(tmp_path / "p.npy")]) == 2
+    assert "3 instances of 2 meshes" in capsys.readouterr().err

@@ -26,6 +26,7 @@ from typing import Any, Callable
 import numpy as np
 
 from ..bvh import BVH
+from ..scene import Scene
 from ..queries.traverse import kernel_defines
 from ..verification.oracle import brute_force
 from .camera import Camera
@@ -273,7 +274,8 @@ def ambient_occlusion(occluded: Callable[[np.ndarray, np.ndarray, float], np.nda
 def render(bvh: Any, camera: Camera, mode: str = "normals", *, ao_samples: int = AO_SAMPLES,
            ao_distance: float = AO_DISTANCE, seed: int = 0,
            triangle_test: str = "watertight", order: str = "ordered") -> RenderResult:
-    """Render ``bvh`` (an :class:`lbvh.BVH`) seen by ``camera`` with the traversal kernel.
+    """Render ``bvh`` (an :class:`lbvh.BVH` or an :class:`lbvh.Scene` of instances) seen by
+    ``camera`` with the traversal kernel.
 
     Args:
         mode: one of :data:`MODES`.
@@ -286,8 +288,8 @@ def render(bvh: Any, camera: Camera, mode: str = "normals", *, ao_samples: int =
     Returns:
         :class:`RenderResult` with the float image and the timings.
     """
-    if not isinstance(bvh, BVH):
-        raise ValueError(f"bvh: expected an lbvh.BVH, got {type(bvh).__name__}")
+    if not isinstance(bvh, (BVH, Scene)):
+        raise ValueError(f"bvh: expected an lbvh.BVH or lbvh.Scene, got {type(bvh).__name__}")
     if not isinstance(camera, Camera):
         raise ValueError(f"camera: expected an lbvh.Camera, got {type(camera).__name__}")
     check_mode(mode)
@@ -297,10 +299,15 @@ def render(bvh: Any, camera: Camera, mode: str = "normals", *, ao_samples: int =
     origins, directions = camera.rays()
     hits = tracer.closest(origins, directions, counters=(mode == "heatmap"))
     w, h = camera.width, camera.height
+    if isinstance(bvh, Scene):   # shaded on the one mesh it stands for
+        vertices, faces, _ = bvh.flattened()
+        prim = bvh.flat_prim(hits)
+    else:
+        vertices, faces, prim = bvh.vertices, bvh.faces, hits.prim
     if mode in PRIMARY_ONLY_MODES:
-        image = shade_primary(mode, hits.t, hits.prim, directions, bvh.vertices, bvh.faces, w, h)
+        image = shade_primary(mode, hits.t, prim, directions, vertices, faces, w, h)
     elif mode == "ao":
-        ao = ambient_occlusion(tracer.occluded, bvh.vertices, bvh.faces, hits.prim, hits.u, hits.v,
+        ao = ambient_occlusion(tracer.occluded, vertices, faces, prim, hits.u, hits.v,
                                directions, ao_samples, distance=ao_distance, seed=seed)
         image = ao.reshape(h, w, 1)
     else:

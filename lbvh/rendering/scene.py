@@ -49,6 +49,9 @@ class Scene:
     """A triangle mesh (``float32 (V, 3)`` vertices, ``uint32 (F, 3)`` faces) and its settings.
 
     ``camera`` is the saved view of a scene description, ``None`` for a bare mesh.
+    A mesh file that places several meshes (a glTF scene) is flattened into
+    ``vertices`` and ``faces`` and also kept whole as ``extras["instances"]``, the
+    ``trimesh.Scene``, from which ``lbvh.build`` makes an :class:`lbvh.Scene`.
     """
     vertices: np.ndarray
     faces: np.ndarray
@@ -96,7 +99,20 @@ def _obj_index_problem(path: Path) -> str | None:
 
 
 def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Read a mesh file with trimesh and return validated ``(vertices, faces)``."""
+    """Read a mesh file with trimesh and return validated ``(vertices, faces)``: the
+    meshes of a file of several (a glTF scene) flattened into one."""
+    return _load(path)[:2]
+
+
+def _placed_meshes(loaded: Any) -> int:
+    """How many nodes of a trimesh scene's graph place a triangle mesh."""
+    return sum(1 for node in loaded.graph.nodes_geometry
+               if len(getattr(loaded.geometry.get(loaded.graph[node][1]), "faces", ())) > 0)
+
+
+def _load(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, Any]:
+    """``(vertices, faces, structure)``: the flattened mesh, and the ``trimesh.Scene``
+    itself where the file places more than one mesh (else ``None``)."""
     import trimesh
 
     path = Path(path)
@@ -117,9 +133,11 @@ def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         if problem:
             raise ValueError(f"{path}: {problem}") from None
         raise ValueError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
+    structure = None
     if isinstance(loaded, trimesh.Scene):
         if not loaded.geometry:
             raise ValueError(f"{path}: the file holds no mesh")
+        structure = loaded if _placed_meshes(loaded) > 1 else None
         try:
             loaded = loaded.to_geometry() if hasattr(loaded, "to_geometry") else loaded.dump(concatenate=True)
         except Exception as exc:
@@ -127,7 +145,7 @@ def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     if not hasattr(loaded, "faces") or len(getattr(loaded, "faces", [])) == 0:
         raise ValueError(f"{path}: the file holds no triangles")
     try:
-        return as_mesh(np.asarray(loaded.vertices), np.asarray(loaded.faces))
+        return (*as_mesh(np.asarray(loaded.vertices), np.asarray(loaded.faces)), structure)
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from None
 
@@ -156,8 +174,9 @@ def load_scene(path: str | os.PathLike) -> Scene:
                                f"(shipped: {', '.join(MESHES)})")
     if path.suffix.lower() == SCENE_SUFFIX:
         return load_scene_description(path)
-    v, f = load_mesh(path)
-    return Scene(v, f, name=path.stem)
+    v, f, structure = _load(path)
+    # a file placing several meshes keeps its structure (lbvh.build makes instances of it)
+    return Scene(v, f, name=path.stem, extras={"instances": structure} if structure else {})
 
 
 def load_scene_description(path: str | os.PathLike) -> Scene:

@@ -1,4 +1,4 @@
-"""Two-level scenes (lbvh.Scene, kernels/instances.cl) against a flattened copy: the float64
+"""Two-level scenes of instances (lbvh.Scene, kernels/instances.cl) against a flattened copy: the float64
 oracle of the one mesh the scene stands for gives the same hits, ties and rounding aside."""
 from __future__ import annotations
 
