@@ -1,4 +1,5 @@
-"""What the bench scripts share (bench_build, bench_builders, bench_traverse): one home each.
+"""What the bench scripts share (bench_build, bench_builders, bench_traverse, bench_queries):
+one home each.
 
 bench/ is not a package. A script run as ``python bench/<script>.py`` has its
 own folder on ``sys.path`` and imports this module as ``common``; the tests
@@ -12,7 +13,8 @@ another one: what two of them need lives here.
   ``lbvh/data/cameras.json``, :class:`Scene` and its loading;
 * the peers: :class:`Embree` (embreex) and :class:`Warp` (warp-lang on the
   CPU), each with its build, closest-hit and any-hit query, and
-  :func:`load_peers`;
+  :func:`load_peers`; for bench_queries, :class:`Open3D` (``RaycastingScene``),
+  :class:`Trimesh` and warp's point, hit-count and box queries (:data:`QUERY_PEERS`);
 * the machine: :func:`cpu_model`, :func:`library_versions`, :func:`machine_info`;
 * timing: :func:`median`, :func:`timed`, :func:`cores_used`,
   :func:`interleaved_rounds`, :class:`Progress`;
@@ -391,15 +393,271 @@ class Warp:
         self._launch(self._closest, n, [mesh.id, self._vec3(points), d, face])
         return d.numpy().astype(np.float32), face.numpy().astype(np.int32)
 
+    # -- the other point, ray and box queries (bench_queries.py) ----------------------
+
+    def winding_mesh(self, vertices: np.ndarray, faces: np.ndarray,
+                     bvh_constructor: str = "sah") -> tuple[float, float, Any]:
+        """``(setup seconds, build seconds, mesh)`` like :meth:`build`, the mesh made with
+        ``support_winding_number=True``: what ``wp.mesh_query_point_sign_winding_number``
+        needs (without it warp falls back, silently, to its three-ray vote)."""
+        t0 = time.perf_counter()
+        points, indices = self.arrays(vertices, faces)
+        t1 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            mesh = self.wp.Mesh(points, indices, support_winding_number=True,
+                                bvh_constructor=bvh_constructor)
+        t2 = time.perf_counter()
+        return t1 - t0, t2 - t1, mesh
+
+    def query_kernels(self) -> dict[str, Any]:
+        """The kernels of :meth:`signed_distance`, :meth:`count_hits` and :meth:`overlapping`,
+        made together on first use (one compilation of this module)."""
+        if getattr(self, "_query_kernels", None) is None:
+            wp = self.wp
+
+            @wp.kernel
+            def signed(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), accuracy: float,
+                       d_out: wp.array(dtype=float), inside_out: wp.array(dtype=wp.int32)):
+                i = wp.tid()
+                q = wp.mesh_query_point_sign_winding_number(mesh, points[i], 1.0e30, accuracy, 0.5)
+                d_out[i] = wp.inf
+                inside_out[i] = 0
+                if q.result:
+                    d = wp.length(wp.mesh_eval_position(mesh, q.face, q.u, q.v) - points[i])
+                    d_out[i] = q.sign * d
+                    if q.sign < 0.0:
+                        inside_out[i] = 1
+
+            @wp.kernel
+            def count(mesh: wp.uint64, origins: wp.array(dtype=wp.vec3),
+                      directions: wp.array(dtype=wp.vec3), n_out: wp.array(dtype=wp.int32)):
+                i = wp.tid()
+                n_out[i] = wp.mesh_query_ray_count_intersections(mesh, origins[i], directions[i])
+
+            @wp.kernel
+            def box_count(mesh: wp.uint64, lower: wp.array(dtype=wp.vec3),
+                          upper: wp.array(dtype=wp.vec3), n_out: wp.array(dtype=wp.int32)):
+                i = wp.tid()
+                q = wp.mesh_query_aabb(mesh, lower[i], upper[i])
+                face = int(0)
+                n = int(0)
+                while wp.mesh_query_aabb_next(q, face):
+                    n += 1
+                n_out[i] = n
+
+            @wp.kernel
+            def box_fill(mesh: wp.uint64, lower: wp.array(dtype=wp.vec3),
+                         upper: wp.array(dtype=wp.vec3), offsets: wp.array(dtype=wp.int32),
+                         prims: wp.array(dtype=wp.int32)):
+                i = wp.tid()
+                q = wp.mesh_query_aabb(mesh, lower[i], upper[i])
+                face = int(0)
+                k = offsets[i]
+                while wp.mesh_query_aabb_next(q, face):
+                    prims[k] = face
+                    k += 1
+
+            self._query_kernels = {"signed": signed, "count": count, "box_count": box_count,
+                                   "box_fill": box_fill}
+        return self._query_kernels
+
+    def _signed(self, mesh: Any, points: np.ndarray, accuracy: float) -> tuple[np.ndarray, np.ndarray]:
+        wp = self.wp
+        n = len(points)
+        d = wp.empty(n, dtype=float, device="cpu")
+        inside = wp.empty(n, dtype=wp.int32, device="cpu")
+        self._launch(self.query_kernels()["signed"], n,
+                     [mesh.id, self._vec3(points), float(accuracy), d, inside])
+        return d.numpy().astype(np.float32), inside.numpy() != 0
+
+    def signed_distance(self, mesh: Any, points: np.ndarray, accuracy: float = 2.0) -> np.ndarray:
+        """``float32 (N,)`` by ``wp.mesh_query_point_sign_winding_number`` (fast winding
+        numbers, ``accuracy`` its beta, inside where ``w > 0.5``), negative inside; the
+        mesh from :meth:`winding_mesh`."""
+        return self._signed(mesh, points, accuracy)[0]
+
+    def contains(self, mesh: Any, points: np.ndarray, accuracy: float = 2.0) -> np.ndarray:
+        """``bool (N,)``: the sign of the same query (warp has no inside test without the
+        closest point)."""
+        return self._signed(mesh, points, accuracy)[1]
+
+    def count_hits(self, mesh: Any, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """``int32 (N,)`` by ``wp.mesh_query_ray_count_intersections`` (hits with ``t >= 0``)."""
+        n = len(origins)
+        out = self.wp.empty(n, dtype=self.wp.int32, device="cpu")
+        self._launch(self.query_kernels()["count"], n,
+                     [mesh.id, self._vec3(origins), self._vec3(directions), out])
+        return out.numpy()
+
+    def overlapping(self, mesh: Any, lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The triangles whose boxes overlap each box by ``wp.mesh_query_aabb``, as
+        ``(offsets int64 (N + 1,), prims int32)``: one pass counts, numpy's cumulative
+        sum places, a second pass writes (each box's triangles in warp's traversal order)."""
+        wp, kernels = self.wp, self.query_kernels()
+        n = len(lower)
+        lo, hi = self._vec3(lower), self._vec3(upper)
+        counts = wp.empty(n, dtype=wp.int32, device="cpu")
+        self._launch(kernels["box_count"], n, [mesh.id, lo, hi, counts])
+        offsets = np.zeros(n + 1, np.int64)
+        np.cumsum(counts.numpy(), out=offsets[1:])
+        prims = wp.empty(max(int(offsets[-1]), 1), dtype=wp.int32, device="cpu")
+        self._launch(kernels["box_fill"], n,
+                     [mesh.id, lo, hi, wp.array(offsets[:-1].astype(np.int32), dtype=wp.int32,
+                                                device="cpu"), prims])
+        return offsets, prims.numpy()[:int(offsets[-1])]
+
+
+class Open3D:
+    """Open3D's ``o3d.t.geometry.RaycastingScene`` on the CPU (Embree inside), each query
+    on ``threads`` threads (its ``nthreads``; 0 would be its own choice). Raises
+    ``ImportError`` when open3d is not installed. Every query takes numpy arrays and
+    answers numpy arrays: the tensor wrapping is part of each call."""
+
+    def __init__(self, threads: int = 2) -> None:
+        import open3d as o3d
+        self.o3d = o3d
+        self.threads = threads
+        self.version = f"{o3d.__version__} (nthreads={threads})"
+
+    def _tensor(self, a: np.ndarray) -> Any:
+        return self.o3d.core.Tensor.from_numpy(np.ascontiguousarray(a))
+
+    def build(self, vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float, Any]:
+        """``(setup seconds, build seconds, scene)``: setup is the scene's creation and
+        ``add_triangles``, build the commit that the first query runs."""
+        t0 = time.perf_counter()
+        scene = self.o3d.t.geometry.RaycastingScene(nthreads=self.threads)
+        scene.add_triangles(self._tensor(vertices.astype(np.float32)),
+                            self._tensor(faces.astype(np.uint32)))
+        t1 = time.perf_counter()
+        scene.count_intersections(self._tensor(np.float32([[0, 0, 0, 0, 0, 1]])), nthreads=self.threads)
+        t2 = time.perf_counter()
+        return t1 - t0, t2 - t1, scene
+
+    def _rays(self, origins: np.ndarray, directions: np.ndarray) -> Any:
+        return self._tensor(np.hstack([origins, directions]).astype(np.float32))
+
+    def closest_points(self, scene: Any, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``compute_closest_points``: ``(distance float32, triangle int32)``, the distance
+        that of the closest point it answers (in numpy, float32)."""
+        p = np.ascontiguousarray(points, np.float32)
+        out = scene.compute_closest_points(self._tensor(p), nthreads=self.threads)
+        d = np.linalg.norm(out["points"].numpy() - p, axis=1).astype(np.float32)
+        return d, out["primitive_ids"].numpy().view(np.int32)
+
+    def signed_distance(self, scene: Any, points: np.ndarray, nsamples: int = 1) -> np.ndarray:
+        """``compute_signed_distance``: ``float32 (N,)``, negative inside by the parity of
+        ``nsamples`` rays from each point."""
+        return scene.compute_signed_distance(self._tensor(points.astype(np.float32)),
+                                             nthreads=self.threads, nsamples=nsamples).numpy()
+
+    def contains(self, scene: Any, points: np.ndarray, nsamples: int = 1) -> np.ndarray:
+        """``compute_occupancy``: ``bool (N,)``, the parity of ``nsamples`` rays."""
+        return scene.compute_occupancy(self._tensor(points.astype(np.float32)),
+                                       nthreads=self.threads, nsamples=nsamples).numpy() > 0.5
+
+    def count_hits(self, scene: Any, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """``count_intersections``: ``int32 (N,)``."""
+        return scene.count_intersections(self._rays(origins, directions),
+                                         nthreads=self.threads).numpy().astype(np.int32)
+
+    def all_hits(self, scene: Any, origins: np.ndarray,
+                 directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``list_intersections``: ``(offsets int64 (N + 1,), t float32, triangle int32)``,
+        grouped by ray (its ``ray_splits``), in its order within a ray."""
+        out = scene.list_intersections(self._rays(origins, directions), nthreads=self.threads)
+        return (out["ray_splits"].numpy().astype(np.int64), out["t_hit"].numpy(),
+                out["primitive_ids"].numpy().view(np.int32))
+
+
+class Trimesh:
+    """trimesh's queries, numpy with rtree and scipy's k-d tree (closest points, signed
+    distance), rtree (boxes) and its ray intersector (inside, every hit): Embree through embreex when
+    that is importable, else its numpy ``ray_triangle``. Raises ``ImportError`` when
+    trimesh is not installed; :attr:`has_proximity` is False without scipy."""
+
+    def __init__(self) -> None:
+        import trimesh
+        self.trimesh = trimesh
+        try:
+            importlib.import_module("scipy.spatial")   # trimesh's closest points need it
+            self.has_proximity = True
+        except ImportError:
+            self.has_proximity = False
+        self.rays = "embreex" if trimesh.ray.has_embree else "numpy ray_triangle"
+        self.version = (f"{trimesh.__version__} (rays: {self.rays}; closest points: "
+                        f"{'rtree + scipy' if self.has_proximity else 'none, scipy not installed'})")
+
+    def build(self, vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float, Any]:
+        """``(setup seconds, build seconds, mesh)``: setup makes the ``Trimesh`` (unprocessed),
+        build fills its caches (the ray intersector's scene, by a one-ray query; the
+        r-tree of the triangles' boxes; the k-d tree of the closest-point query, by a
+        one-point query)."""
+        t0 = time.perf_counter()
+        mesh = self.trimesh.Trimesh(vertices, faces, process=False)
+        t1 = time.perf_counter()
+        p = np.asarray(vertices[:1], np.float64) + 1e-3
+        mesh.ray.intersects_id(p, np.float64([[0.0, 0.0, 1.0]]), multiple_hits=True)
+        mesh.triangles_tree
+        if self.has_proximity:
+            self.trimesh.proximity.closest_point(mesh, p)
+        t2 = time.perf_counter()
+        return t1 - t0, t2 - t1, mesh
+
+    def closest_points(self, mesh: Any, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``trimesh.proximity.closest_point``: ``(distance float32, triangle int32)``."""
+        _, d, tri = self.trimesh.proximity.closest_point(mesh, points)
+        return d.astype(np.float32), tri.astype(np.int32)
+
+    def signed_distance(self, mesh: Any, points: np.ndarray) -> np.ndarray:
+        """``ProximityQuery.signed_distance``, negated to negative inside (trimesh's own
+        convention is positive inside): ``float32 (N,)``."""
+        return (-self.trimesh.proximity.ProximityQuery(mesh).signed_distance(points)).astype(np.float32)
+
+    def contains(self, mesh: Any, points: np.ndarray) -> np.ndarray:
+        """``mesh.contains``: ``bool (N,)`` by the parity of a ray both ways."""
+        return np.asarray(mesh.contains(points), bool)
+
+    def overlapping(self, mesh: Any, lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The triangles whose boxes overlap each box, from trimesh's r-tree of the
+        triangles' boxes (``mesh.triangles_tree.intersection``, one call per box):
+        ``(offsets int64 (N + 1,), prims int32)``, each box's in the r-tree's order."""
+        tree = mesh.triangles_tree
+        boxes = np.hstack([lower, upper]).astype(np.float64)
+        per_box = [np.fromiter(tree.intersection(b), np.int64) for b in boxes]
+        offsets = np.zeros(len(boxes) + 1, np.int64)
+        np.cumsum([len(x) for x in per_box], out=offsets[1:])
+        prims = np.concatenate(per_box) if per_box else np.zeros(0, np.int64)
+        return offsets, prims.astype(np.int32)
+
+    def all_hits(self, mesh: Any, origins: np.ndarray, directions: np.ndarray,
+                 max_hits: int = 1000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``mesh.ray.intersects_id(multiple_hits=True)``: ``(offsets int64 (N + 1,),
+        t float32, triangle int32)``, by ray then ``t``; ``t`` from its hit locations."""
+        o, d = np.asarray(origins, np.float64), np.asarray(directions, np.float64)
+        tri, ray, loc = mesh.ray.intersects_id(o, d, multiple_hits=True, max_hits=max_hits,
+                                               return_locations=True)
+        t = ((loc - o[ray]) * d[ray]).sum(axis=1) / (d[ray] ** 2).sum(axis=1)
+        order = np.lexsort((t, ray))
+        offsets = np.zeros(len(o) + 1, np.int64)
+        np.cumsum(np.bincount(ray, minlength=len(o)), out=offsets[1:])
+        return offsets, t[order].astype(np.float32), tri[order].astype(np.int32)
+
 
 #: The peers in the order the benches list them: family -> adapter class.
 PEERS = {"embree": Embree, "warp": Warp}
+#: The peers of bench_queries.py (closest points, signed distance, inside, hit counts,
+#: every hit, boxes): Embree (embreex) answers none of these, so it is not one of them.
+QUERY_PEERS = {"warp": Warp, "open3d": Open3D, "trimesh": Trimesh}
 
 
-def load_peers(enabled: bool) -> tuple[dict[str, Any], dict[str, str]]:
-    """Importable peers ``{family: peer}`` and a status line for each."""
+def load_peers(enabled: bool, classes: dict[str, Any] | None = None
+               ) -> tuple[dict[str, Any], dict[str, str]]:
+    """Importable peers ``{family: peer}`` and a status line for each, of ``classes``
+    (family -> adapter class; default :data:`PEERS`)."""
     peers, status = {}, {}
-    for family, cls in PEERS.items():
+    for family, cls in (PEERS if classes is None else classes).items():
         if not enabled:
             status[family] = "disabled (--no-peers)"
             continue
