@@ -1,5 +1,6 @@
 #!/usr/bin/env python
-"""Ray traversal against Embree and warp on the same rays, in the same run (issue 3).
+"""Ray traversal against Embree, Open3D and warp on the same rays, in the same run
+(issues 3 and 16).
 
     .venv/bin/python bench/bench_traverse.py [--quick] [--scenes sponza,bunny,terrain-1m]
         [--rays 1024x1024] [--repeats 3] [--ao-samples 1] [--sah] [--no-peers] [--out DIR]
@@ -36,10 +37,24 @@ round, so that the machine's noise hits all alike):
   ``output=1``, any hit ``query='OCCLUDED'`` with ``dists = tmax``);
   ``embree-2t``: the same scene, the rays in :data:`EMBREE_CHUNKS` chunks
   pulled by two Python threads (embreex releases the GIL while it traces);
+* ``open3d``: Open3D's ``o3d.t.geometry.RaycastingScene`` (:class:`common.Open3D`:
+  Embree 4 inside, ``RTC_SCENE_FLAG_ROBUST``, one ``rtcIntersect1`` /
+  ``rtcOccluded1`` per ray over a TBB arena) with ``nthreads=2``: closest hit
+  ``cast_rays``, any hit ``test_occlusions(tnear=0, tfar=tmax)``;
 * ``warp``: warp-lang on the CPU device (``wp.Mesh``, SAH constructor; a CPU
   launch runs on one thread): closest hit ``wp.mesh_query_ray``, any hit
   ``wp.mesh_query_ray_anyhit`` (closest hit with ``max_t`` where a warp
   version lacks it, said in the report).
+
+Every peer is optional: one that is not importable (or ``--no-peers``) has no
+rows, and the ratios and goals that need it say NOT MEASURED.
+
+Each of our trees is also traced once more per ray set, outside the timing,
+with ``counters=True`` (``bvh.intersect`` / ``bvh.occluded``): the mean nodes
+visited and triangles tested per ray stand beside its speed (the kernel-only
+rows share the API row's tree and kernel, hence its counts). Our build times
+are the median of :data:`BUILD_REPEATS` builds after an untimed one that
+compiles the kernels (the serial SAH tree: one build).
 
 Error figures beside every speed: the spread of the timing samples
 ((max - min) / median) and the agreement with the reference tracer
@@ -55,12 +70,15 @@ give (edges, ties, grazing hits): each row says how many of its disagreements
 were right and how many wrong. Our rows also count stack overflows.
 
 Outputs in ``--out``: ``bench_traverse.json`` (every sample, the machine) and
-``bench_traverse.md`` (also printed): the table, the closest-hit ratios and
-the targets of issue 3, each MET or NOT MET. Progress goes to stderr.
+``bench_traverse.md`` (also printed): issue 16's goal table with its verdict
+(:func:`goal`: per scene, the default tree and the best tree built in under
+:data:`GOAL_BUILD_FACTOR` times the default's build time, over ``open3d`` and
+``embree-2t``), the closest-hit ratios, the targets of issue 3, each MET or NOT
+MET, and every row. Progress goes to stderr.
 
 The scenes and cameras, the peers' adapters (:class:`common.Embree`,
-:class:`common.Warp`), the agreement and the timing helpers are shared with
-the other benches in ``bench/common.py``.
+:class:`common.Open3D`, :class:`common.Warp`), the agreement and the timing
+helpers are shared with the other benches in ``bench/common.py``.
 """
 from __future__ import annotations
 
@@ -118,6 +136,26 @@ MOLLER = f"{OURS} (moller)"
 #: Issue 3's targets: closest hit, our throughput over the peer's, at least this much.
 TARGETS = (("embree-2t", 0.3), ("warp", 1.5))
 WARP_CONSTRUCTOR = "sah"
+#: The peers of this bench: family -> adapter class (:func:`common.load_peers`).
+TRACE_PEERS = {**common.PEERS, "open3d": common.Open3D}
+#: Open3D's tracer (``RaycastingScene`` with ``nthreads`` = :attr:`common.Open3D.threads`).
+OPEN3D = "open3d"
+#: The peers every row gives its ratio to (``vs``).
+VS_PEERS = ("embree-1t", "embree-2t", OPEN3D, "warp")
+#: Issue 16's goal: through the API, our throughput over each of these peers' ...
+GOAL_PEERS = (OPEN3D, "embree-2t")
+#: ... at least this much for the default tree ...
+GOAL_DEFAULT = 0.8
+#: ... and at least this much for the best tree built in under
+#: :data:`GOAL_BUILD_FACTOR` times the default tree's build time (judged on closest
+#: hits; any hits and AO get the same test, reported beside it).
+GOAL_BEST = 1.0
+GOAL_BUILD_FACTOR = 5.0
+#: Our trees that may be the goal's best tree (the fastest on closest hits among those
+#: built fast enough; the default tree is one of them).
+GOAL_CANDIDATES = (OURS, f"{OURS}+collapse", TREELETS, "sah")
+#: Timed builds per device tree (after an untimed one: kernel compilation).
+BUILD_REPEATS = 3
 
 
 # -- rays ----------------------------------------------------------------------------
@@ -192,8 +230,27 @@ class OurTree:
                                   triangle_test=self.triangle_test)
         return Answer(h.hit, h.prim, h.t, int(h.overflow_count)), None
 
+    def counters(self, rays: RaySet) -> tuple[float, float] | None:
+        """Mean nodes visited and triangles tested per ray (``counters=True``: a kernel
+        of its own, so never inside the timing); None for no rays."""
+        return tree_counters(self.bvh, rays, self.triangle_test)
+
     def close(self) -> None:
         pass
+
+
+def tree_counters(bvh: lbvh.BVH, rays: RaySet, triangle_test: str = "watertight"
+                  ) -> tuple[float, float] | None:
+    """``(nodes visited, triangles tested)`` per ray, means over the ray set, from
+    ``bvh.intersect`` / ``bvh.occluded`` with ``counters=True``; None for no rays."""
+    if not len(rays):
+        return None
+    if rays.closest:
+        h = bvh.intersect(rays.origins, rays.directions, triangle_test=triangle_test, counters=True)
+    else:
+        h = bvh.occluded(rays.origins, rays.directions, tmax=rays.tmax, return_hits=True,
+                         triangle_test=triangle_test, counters=True)
+    return float(h.nodes_visited.mean()), float(h.tris_tested.mean())
 
 
 #: The device-level entry points the kernel-only rows use.
@@ -229,6 +286,10 @@ class OurKernel:
         out = traverse.trace_buffers(self.bvh, device_rays, any_hit=not rays.closest,
                                      hits=hit_buf, flags=flag_buf)
         return None, dev.event_seconds([out.event])
+
+    def counters(self, rays: RaySet) -> tuple[float, float] | None:
+        """Those of the API row: the same tree and the same (watertight) kernel."""
+        return tree_counters(self.bvh, rays)
 
     def close(self) -> None:
         for _, device_rays, hit_buf, flag_buf in self._buffers.values():
@@ -271,6 +332,24 @@ class EmbreeTracer:
 
     def close(self) -> None:
         pass
+
+
+class Open3DTracer:
+    """Open3D's ``RaycastingScene`` through :class:`common.Open3D` (its ``nthreads``):
+    closest hit ``cast_rays``, any hit ``test_occlusions`` with ``tfar = tmax``."""
+
+    def __init__(self, open3d: common.Open3D, scene: Any) -> None:
+        self.open3d, self.scene = open3d, scene
+
+    def trace(self, rays: RaySet) -> tuple[Answer, None]:
+        if rays.closest:
+            t, prim = self.open3d.cast_rays(self.scene, rays.origins, rays.directions)
+            return Answer(prim >= 0, prim, t), None
+        return Answer(self.open3d.test_occlusions(self.scene, rays.origins, rays.directions,
+                                                  rays.tmax)), None
+
+    def close(self) -> None:
+        self.scene = None
 
 
 class WarpTracer:
@@ -324,11 +403,14 @@ class Contestant:
     threads: int | None
     timing: str                      # "wall" (the call) or "device" (kernel events)
     build_seconds: float
+    build_samples: list[float] = field(default_factory=list)
     seconds: dict[str, list[float]] = field(default_factory=dict)
     wall: dict[str, list[float]] = field(default_factory=dict)
     cpu: dict[str, list[float]] = field(default_factory=dict)
     others: dict[str, list[float | None]] = field(default_factory=dict)
     answer: dict[str, Answer | None] = field(default_factory=dict)
+    #: ours: ``(nodes visited, triangles tested)`` per ray, per query (untimed pass)
+    counters: dict[str, tuple[float, float] | None] = field(default_factory=dict)
 
     @property
     def name(self) -> str:
@@ -363,6 +445,22 @@ def our_trees(scene: common.Scene, ctx: dev.Context, with_sah: bool) -> tuple[li
     return trees, notes
 
 
+def timed_builds(v: np.ndarray, f: np.ndarray, ctx: dev.Context, options: dict,
+                 repeats: int) -> tuple[list[float], lbvh.BVH]:
+    """Wall seconds of ``repeats`` builds of ``lbvh.build(v, f, **options)`` and the
+    last tree. With more than one, an untimed build first: it compiles the kernels
+    (the first build of a process pays PoCL's compilation, which is not the build's)."""
+    def build() -> lbvh.BVH:
+        return lbvh.build(v, f, device=ctx, **options)
+    if repeats > 1:
+        build()
+    samples, bvh = [], None
+    for _ in range(repeats):
+        seconds, bvh = common.timed(build)
+        samples.append(seconds)
+    return samples, bvh
+
+
 def make_contestants(scene: common.Scene, ctx: dev.Context, peers: dict[str, Any],
                      pool: ThreadPoolExecutor, with_sah: bool) -> tuple[list[Contestant], list[str]]:
     """Build every tree (each once, timed for the record) and wrap it as contestants."""
@@ -374,16 +472,18 @@ def make_contestants(scene: common.Scene, ctx: dev.Context, peers: dict[str, Any
     if no_kernel:
         notes.append(f"no kernel-only rows: {no_kernel}")
     for name, options in trees:
-        seconds, bvh = common.timed(lambda: lbvh.build(v, f, device=ctx, **options))
+        samples, bvh = timed_builds(v, f, ctx, options, repeats=1 if name == "sah" else BUILD_REPEATS)
+        seconds = float(statistics.median(samples))
         bvh.validate()
         family = "sah" if name == "sah" else "lbvh"
-        out.append(Contestant(common.Variant(name, family, options), OurTree(bvh), None, "wall", seconds))
+        out.append(Contestant(common.Variant(name, family, options), OurTree(bvh), None, "wall",
+                              seconds, samples))
         if name == OURS:   # the same tree with the faster, leaky triangle test
             out.append(Contestant(common.Variant(MOLLER, "moller", options), OurTree(bvh, "moller"),
-                                  None, "wall", seconds))
+                                  None, "wall", seconds, samples))
         if not no_kernel:
             kernels.append(Contestant(common.Variant(f"{name} (kernel only)", "kernel", options),
-                                      OurKernel(bvh), None, "device", seconds))
+                                      OurKernel(bvh), None, "device", seconds, samples))
     out += kernels
     if "embree" in peers:
         embree = peers["embree"]
@@ -392,6 +492,11 @@ def make_contestants(scene: common.Scene, ctx: dev.Context, peers: dict[str, Any
             out.append(Contestant(common.Variant(f"embree-{threads}t", "embree"),
                                   EmbreeTracer(embree, built, threads, pool), threads, "wall",
                                   setup + build))
+    if "open3d" in peers:
+        o3d = peers["open3d"]
+        setup, build, o3d_scene = o3d.build(v, f)
+        out.append(Contestant(common.Variant(OPEN3D, "open3d", {"nthreads": o3d.threads}),
+                              Open3DTracer(o3d, o3d_scene), o3d.threads, "wall", setup + build))
     if "warp" in peers:
         warp = peers["warp"]
         variant = common.Variant("warp", "warp", {"bvh_constructor": WARP_CONSTRUCTOR})
@@ -485,7 +590,8 @@ def compare(scene: common.Scene, rays: RaySet, contestants: list[Contestant], ju
 
 ROW_FIELDS = ("scene", "query", "tracer", "family", "threads", "timing", "rays", "seconds",
               "samples", "wall_samples", "cpu_over_wall", "other_load", "rays_per_second", "spread",
-              "hit_fraction", "overflow_count", "agreement", "vs", "null_reasons")
+              "hit_fraction", "overflow_count", "nodes_per_ray", "tris_per_ray", "agreement", "vs",
+              "null_reasons")
 
 
 def spread(samples: list[float]) -> float:
@@ -523,8 +629,15 @@ def make_rows(scene: common.Scene, rays: RaySet, contestants: list[Contestant], 
                    cpu_over_wall=common.cores_used(c.cpu[q], c.wall[q]),
                    other_load=median_or_none(c.others[q]),
                    rays_per_second=len(rays) / seconds, spread=spread(c.seconds[q]),
-                   vs={peer: ratio_to(c, by_name.get(peer), q) for peer in ("embree-1t", "embree-2t", "warp")},
+                   vs={peer: ratio_to(c, by_name.get(peer), q) for peer in VS_PEERS},
                    null_reasons={})
+        counts = c.counters.get(q)
+        if counts is not None:
+            row["nodes_per_ray"], row["tris_per_ray"] = counts
+        else:
+            why = ("peer: no traversal counters" if not hasattr(c.tracer, "counters")
+                   else "no rays in this ray set")
+            row["null_reasons"].update(nodes_per_ray=why, tris_per_ray=why)
         if a is None:
             row["null_reasons"].update(
                 hit_fraction="kernel only: nothing read back (the API row has the hits)",
@@ -554,6 +667,23 @@ def steps_per_scene(repeats: int) -> int:
     return 1 + len(QUERIES) * repeats + 1
 
 
+def count_nodes_and_triangles(contestants: list[Contestant], ray_sets: list[RaySet],
+                              progress: common.Progress) -> None:
+    """Each of our contestants' nodes visited and triangles tested per ray, per ray set:
+    one untimed ``counters=True`` pass per tree, triangle test and ray set (the
+    kernel-only rows share their API row's pass)."""
+    done: dict[tuple[int, str, str], tuple[float, float] | None] = {}
+    for rays in ray_sets:
+        for c in contestants:
+            if not hasattr(c.tracer, "counters"):
+                continue
+            key = (id(c.tracer.bvh), getattr(c.tracer, "triangle_test", "watertight"), rays.query)
+            if key not in done:
+                progress.note(f"{c.name} counters {rays.query}")
+                done[key] = c.tracer.counters(rays)
+            c.counters[rays.query] = done[key]
+
+
 def bench_scene(scene: common.Scene, ctx: dev.Context, peers: dict[str, Any], pool: ThreadPoolExecutor,
                 args: argparse.Namespace, progress: common.Progress) -> tuple[dict, list[dict]]:
     """Build, make the rays, trace them in interleaved rounds, compare; the scene's
@@ -575,6 +705,7 @@ def bench_scene(scene: common.Scene, ctx: dev.Context, peers: dict[str, Any], po
         common.interleaved_rounds(contestants, args.repeats, args.budget,
                               lambda c, q=rays.query: sum(c.wall.get(q, [])),
                               lambda c, r=rays: c.run(r), progress, rays.query)
+    count_nodes_and_triangles(contestants, ray_sets, progress)
     rows, comparisons = [], {}
     for rays in ray_sets:
         progress.note(f"judging {rays.query}")
@@ -593,6 +724,8 @@ def bench_scene(scene: common.Scene, ctx: dev.Context, peers: dict[str, Any], po
                "tmax": {r.query: (None if np.isinf(r.tmax) else r.tmax) for r in ray_sets},
                "primary_hit_fraction": float(primary.hit.mean()),
                "build_seconds": {c.name: c.build_seconds for c in contestants if c.timing == "wall"},
+               "build_samples": {c.name: c.build_samples for c in contestants
+                                 if c.timing == "wall" and c.build_samples},
                "comparisons": comparisons, "notes": notes}
     return summary, rows
 
@@ -608,9 +741,10 @@ def closest_ratios(rows: list[dict]) -> list[dict]:
         if r["family"] not in ("lbvh", "sah", "kernel"):
             continue
         peers = {p["tracer"]: p["rays_per_second"] for p in closest
-                 if p["scene"] == r["scene"] and p["family"] in ("embree", "warp")}
+                 if p["scene"] == r["scene"] and p["family"] in ("embree", "open3d", "warp")}
         out.append({"scene": r["scene"], "tracer": r["tracer"], "timing": r["timing"],
                     "rays_per_second": r["rays_per_second"], "spread": r["spread"],
+                    "nodes_per_ray": r["nodes_per_ray"], "tris_per_ray": r["tris_per_ray"],
                     "peers_rays_per_second": peers, "vs": r["vs"]})
     return out
 
@@ -619,12 +753,12 @@ def closest_ratios(rows: list[dict]) -> list[dict]:
 BOTH_CORES = 1.5
 
 
-def caveat(mine: dict, theirs: dict | None) -> str | None:
-    """Why a ratio of ours to a peer may not be what the target means: a tracer that
-    should use both cores got fewer (other processes took them)."""
+def caveat(mine: dict, *theirs: dict | None) -> str | None:
+    """Why a ratio of ours to a peer (or peers) may not be what the target means: a
+    tracer that should use both cores got fewer (other processes took them)."""
     starved = [f"{r['tracer']} used {r['cpu_over_wall']:.2f} cores (other load "
                f"{fmt_or_dash(r['other_load'], '.2f')})"
-               for r in (mine, theirs) if r is not None and (r["threads"] or 2) >= 2
+               for r in (mine, *theirs) if r is not None and (r["threads"] or 2) >= 2
                and r["cpu_over_wall"] < BOTH_CORES]
     return "; ".join(starved) + ": not both cores" if starved else None
 
@@ -652,6 +786,94 @@ def targets(rows: list[dict], scene_names: list[str]) -> list[dict]:
                                  round_max=r["round_max"],
                                  status="MET" if r["ratio"] >= at_least else "NOT MET")
                 out.append(entry)
+    return out
+
+
+def goal_status(ratios: dict[str, dict | None], at_least: float) -> tuple[str, list[str]]:
+    """MET / NOT MET / NOT MEASURED for one tree and query against :data:`GOAL_PEERS`,
+    and what falls short (``"0.69x embree-2t"``) or is missing."""
+    missing = [p for p in GOAL_PEERS if ratios.get(p) is None]
+    if missing:
+        return "NOT MEASURED", [f"{p} not in this run" for p in missing]
+    short = [f"{ratios[p]['ratio']:.2f}x {p}" for p in GOAL_PEERS if ratios[p]["ratio"] < at_least]
+    return ("NOT MET" if short else "MET"), short
+
+
+def goal(rows: list[dict], scenes: list[dict]) -> list[dict]:
+    """Issue 16's goal per scene, through the API: the default tree (``role`` default,
+    at least :data:`GOAL_DEFAULT` times each of :data:`GOAL_PEERS`) and the best tree
+    (``best``: the fastest closest-hit tree of :data:`GOAL_CANDIDATES` built in under
+    :data:`GOAL_BUILD_FACTOR` times the default's build time, at least :data:`GOAL_BEST`;
+    it may be the default tree itself, then judged twice); the other candidates built
+    here are listed too (``other``, not judged, with why). ``status`` judges the closest
+    hits, ``status_by_query`` every query alike."""
+    out = []
+    for sc in scenes:
+        by = {(r["query"], r["tracer"]): r for r in rows if r["scene"] == sc["name"]}
+        build = sc["build_seconds"]
+        if ("closest", OURS) not in by:
+            continue
+        default_build = build[OURS]
+        candidates = [t for t in GOAL_CANDIDATES if ("closest", t) in by]
+        factor = {t: build[t] / default_build for t in candidates}
+        eligible = [t for t in candidates if factor[t] < GOAL_BUILD_FACTOR]
+        speed = {t: by[("closest", t)]["rays_per_second"] for t in candidates}
+        best = max(eligible, key=speed.get)
+        roles = [("default", OURS, GOAL_DEFAULT, None)]
+        for tree in candidates:
+            if tree == best:
+                roles.append(("best", tree, GOAL_BEST, None))
+            elif tree != OURS:
+                roles.append(("other", tree, None,
+                              f"slower than `{best}`" if tree in eligible else
+                              f"built in {factor[tree]:.1f}x the default's time (the goal allows "
+                              f"under {GOAL_BUILD_FACTOR:g}x)"))
+        for role, tree, at_least, not_judged in roles:
+            queries = {}
+            for q in QUERIES:
+                r = by.get((q, tree))
+                if r is None:
+                    continue
+                queries[q] = {"rays_per_second": r["rays_per_second"],
+                              "nodes_per_ray": r["nodes_per_ray"], "tris_per_ray": r["tris_per_ray"],
+                              "vs": {p: r["vs"].get(p) for p in GOAL_PEERS},
+                              "caveat": caveat(r, *(by.get((q, p)) for p in GOAL_PEERS))}
+            entry = {"scene": sc["name"], "role": role, "tree": tree,
+                     "build_seconds": build[tree], "build_factor": factor[tree],
+                     "at_least": at_least, "queries": queries}
+            if at_least is not None:
+                by_query = {q: goal_status(v["vs"], at_least) for q, v in queries.items()}
+                entry.update(status=by_query["closest"][0], short=by_query["closest"][1],
+                             status_by_query={q: v[0] for q, v in by_query.items()},
+                             short_by_query={q: v[1] for q, v in by_query.items()})
+            else:
+                entry.update(status=None, short=[], status_by_query={}, short_by_query={},
+                             not_judged=not_judged)
+            out.append(entry)
+    return out
+
+
+def goal_verdict(entries: list[dict]) -> dict[str, dict]:
+    """Per query: MET where every judged entry is MET, NOT MEASURED where a peer is
+    missing, else NOT MET; with the entries that fall short, in words."""
+    out = {}
+    for q in QUERIES:
+        judged = [e for e in entries if e["at_least"] is not None and q in e["status_by_query"]]
+        if not judged:
+            out[q] = {"status": "NOT MEASURED", "why": ["no scene measured"]}
+            continue
+        statuses = {e["status_by_query"][q] for e in judged}
+        status = ("NOT MEASURED" if "NOT MEASURED" in statuses
+                  else "NOT MET" if "NOT MET" in statuses else "MET")
+        why = sorted({s for e in judged if e["status_by_query"][q] == "NOT MEASURED"
+                      for s in e["short_by_query"][q]})
+        if status == "NOT MET":
+            why = [f"{e['scene']} {e['role']} `{e['tree']}`: {', '.join(e['short_by_query'][q])} "
+                   f"(needs {e['at_least']:.1f}x)"
+                   for e in judged if e["status_by_query"][q] == "NOT MET"]
+        out[q] = {"status": status, "why": why,
+                  "met": sum(e["status_by_query"][q] == "MET" for e in judged),
+                  "judged": len(judged)}
     return out
 
 
@@ -719,7 +941,7 @@ def fmt_mrays(rays_per_second: float | None) -> str:
 def markdown(report: dict) -> str:
     m, s = report["machine"], report["settings"]
     lines = [
-        "# Traversal: closest hit, any hit and ambient occlusion against Embree and warp", "",
+        "# Traversal: closest hit, any hit and ambient occlusion against Embree, Open3D and warp", "",
         *common.header_lines(report),
         f"Code: commit {str(report['source']['commit'])[:10]}"
         + (f" with uncommitted changes to {', '.join(report['source']['modified'])}"
@@ -732,7 +954,7 @@ def markdown(report: dict) -> str:
         f"(`{FALLBACK_REFERENCE}` without Embree).  ",
         f"CPU use (process CPU seconds over wall seconds, median over a tracer's rows): "
         f"{cpu_use_text(report['cpu_use'])} of {m['cores']} cores; less than a tracer can use "
-        f"(2 for ours and embree-2t) means other load on the machine. Other processes kept "
+        f"(2 for ours, embree-2t and open3d) means other load on the machine. Other processes kept "
         f"{fmt_or_dash(report['other_load']['median'], '.2f')} cores busy during the median row's "
         f"samples ({fmt_or_dash(report['other_load']['max'], '.2f')} in the worst row).", "",
     ]
@@ -744,16 +966,20 @@ def markdown(report: dict) -> str:
                      + "".join(f" {n}." for n in sc["notes"]))
     for skipped in report["skipped"]:
         lines.append(f"- {skipped['scene']}: skipped ({skipped['reason']})")
+    lines += goal_markdown(report["goal"], report["goal_verdict"])
     lines += ["", "## Closest hit: ours against the peers (same run)", "",
-              "| scene | ours | Mrays/s | spread | embree-1t | embree-2t | ours / embree-2t "
-              "| warp | ours / warp |",
-              "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+              "| scene | ours | Mrays/s | nodes/ray | tris/ray | spread | embree-1t | embree-2t "
+              "| ours / embree-2t | open3d | ours / open3d | warp | ours / warp |",
+              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in report["closest_ratios"]:
         p = r["peers_rays_per_second"]
         lines.append(
-            f"| {r['scene']} | {r['tracer']} | {r['rays_per_second'] / 1e6:.2f} | {r['spread']:.0%} "
+            f"| {r['scene']} | {r['tracer']} | {r['rays_per_second'] / 1e6:.2f} "
+            f"| {fmt_or_dash(r['nodes_per_ray'], '.1f')} | {fmt_or_dash(r['tris_per_ray'], '.1f')} "
+            f"| {r['spread']:.0%} "
             f"| {fmt_mrays(p.get('embree-1t'))} | {fmt_mrays(p.get('embree-2t'))} "
             f"| {fmt_ratio(r['vs'].get('embree-2t'))} "
+            f"| {fmt_mrays(p.get(OPEN3D))} | {fmt_ratio(r['vs'].get(OPEN3D))} "
             f"| {fmt_mrays(p.get('warp'))} | {fmt_ratio(r['vs'].get('warp'))} |")
     lines += ["", "## Targets (issue 3, closest hit through the API: the default `lbvh.build` "
               f"tree, `{TREELETS}` and, with `--sah`, the serial SAH reference tree)", ""]
@@ -775,29 +1001,87 @@ def markdown(report: dict) -> str:
             f"| {w['scene']} | {w['query']} | {w['watertight_rays_per_second'] / 1e6:.2f} "
             f"| {w['moller_rays_per_second'] / 1e6:.2f} | {fmt_ratio(w)} | {tight} | {fast} |")
     lines += ["", "## Every tracer, every query", "",
-              "| scene | query | tracer | Mrays/s | ms | spread | CPU use | other load | / embree-2t "
-              "| / warp | agree | agree (ties) | disagree (oracle) | overflow |",
-              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+              "| scene | query | tracer | Mrays/s | ms | nodes/ray | tris/ray | spread | CPU use "
+              "| other load | / embree-2t | / open3d | / warp | agree | agree (ties) "
+              "| disagree (oracle) | overflow |",
+              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
     for r in report["rows"]:
         agree, ties, judged = fmt_agreement(r)
         lines.append(
             f"| {r['scene']} | {r['query']} | {r['tracer']} | {r['rays_per_second'] / 1e6:.2f} "
-            f"| {r['seconds'] * 1e3:.1f} | {r['spread']:.0%} | {r['cpu_over_wall']:.2f} "
-            f"| {fmt_or_dash(r['other_load'], '.2f')} "
-            f"| {fmt_ratio(r['vs']['embree-2t'])} | {fmt_ratio(r['vs']['warp'])} | {agree} | {ties} "
+            f"| {r['seconds'] * 1e3:.1f} | {fmt_or_dash(r['nodes_per_ray'], '.1f')} "
+            f"| {fmt_or_dash(r['tris_per_ray'], '.1f')} | {r['spread']:.0%} "
+            f"| {r['cpu_over_wall']:.2f} | {fmt_or_dash(r['other_load'], '.2f')} "
+            f"| {fmt_ratio(r['vs']['embree-2t'])} | {fmt_ratio(r['vs'][OPEN3D])} "
+            f"| {fmt_ratio(r['vs']['warp'])} | {agree} | {ties} "
             f"| {judged} | {fmt_or_dash(r['overflow_count'], 'd')} |")
     lines += ["", COLUMN_NOTES]
     return "\n".join(lines) + "\n"
 
 
+def goal_markdown(entries: list[dict], verdict: dict[str, dict]) -> list[str]:
+    """The section of issue 16's goal: the verdict lines and the table."""
+    needs = (f"the default tree at least {GOAL_DEFAULT:.1f}x, the best tree built in under "
+             f"{GOAL_BUILD_FACTOR:g}x the default's build time at least {GOAL_BEST:.1f}x "
+             f"{' and '.join(f'`{p}`' for p in GOAL_PEERS)}")
+    lines = ["", f"## Goal (issue 16, through the API, same rays and rounds): {needs}", ""]
+    v = verdict["closest"]
+    counted = (f" ({v['met']} of {v['judged']} judged trees meet it)"
+               if v["status"] != "NOT MEASURED" else "")
+    lines.append(f"**Verdict, closest hit: {v['status']}**{counted}"
+                 + (f": {'; '.join(v['why'])}." if v["why"] else "."))
+    others = []
+    for q in QUERIES[1:]:
+        w = verdict[q]
+        counted = f", {w['met']} of {w['judged']}" if w["status"] != "NOT MEASURED" else ""
+        others.append(f"{q} {w['status']}{counted}")
+    lines += ["", f"The same test on the other queries (reported, not the goal's): "
+              f"{'; '.join(others)}.", "",
+              "| scene | role | tree | build ms | build / default | closest Mrays/s "
+              + "".join(f"| {q} / {p} " for q in QUERIES for p in GOAL_PEERS)
+              + "| needs | closest hit |",
+              "|---|---|---|---:|---:|---:|" + "---:|" * (len(QUERIES) * len(GOAL_PEERS)) + "---:|---|"]
+    for e in entries:
+        qs = e["queries"]
+        ratios = "".join(f"| {fmt_ratio(qs[q]['vs'].get(p)) if q in qs else '-'} "
+                         for q in QUERIES for p in GOAL_PEERS)
+        if e["at_least"] is None:
+            status = f"not judged: {e['not_judged']}"
+        else:
+            status = e["status"] + (f" ({', '.join(e['short'])})" if e["short"] else "")
+            cav = qs.get("closest", {}).get("caveat")
+            if cav:
+                status += f" (caveat: {cav})"
+        lines.append(
+            f"| {e['scene']} | {e['role']} | {e['tree']} | {e['build_seconds'] * 1e3:.1f} "
+            f"| {e['build_factor']:.2f} | {fmt_mrays(qs.get('closest', {}).get('rays_per_second'))} "
+            f"{ratios}| {fmt_or_dash(e['at_least'], '.1f')} | {status} |")
+    lines += ["", GOAL_NOTES]
+    return lines
+
+
+GOAL_NOTES = f"""`role`: `default` the default `lbvh.build` tree; `best` the fastest on
+closest hits of {', '.join(f'`{t}`' for t in GOAL_CANDIDATES)} (those built here) among those built in under
+{GOAL_BUILD_FACTOR:g}x the default's build time; `other` the other trees (not judged: slower, or built too slowly).
+`build ms`: median of {BUILD_REPEATS} builds after one that compiles the kernels (the serial SAH
+tree: one build). Ratios: our throughput over the peer's, ratio of the medians and, in brackets,
+the range of the per-round ratios. The verdict judges closest hits on every scene; `NOT MEASURED`
+where a peer is not installed."""
+
+
 COLUMN_NOTES = """Columns: `Mrays/s` rays over the median time (`ms`): ours through
 `bvh.intersect` / `bvh.occluded` (validation, packing, transfers, read-back included), `(kernel
 only)` the traversal kernel's device time from OpenCL events on rays already on the device;
-peers: their query call (embreex `scene.run`, warp `wp.launch` with the array copies). `spread`:
+peers: their query call (embreex `scene.run`, Open3D `cast_rays` / `test_occlusions` with
+`nthreads=2` and the tensor wrapping, warp `wp.launch` with the array copies). `nodes/ray`,
+`tris/ray`: ours, mean nodes visited (the root plus every node descended into or popped) and
+triangles tested per ray, from an untimed pass with `counters=True` (kernel-only rows: their API
+row's tree and kernel). `spread`:
 (max - min) / median of the samples: differences below it are noise. `CPU use`: process CPU
 seconds over wall seconds of the calls (PoCL's and Embree's threads included): about the cores
 busy; `other load`: cores other processes kept busy meanwhile (machine-wide busy CPU
-time from /proc/stat minus this process's, over the wall time; median of the samples). `/ embree-2t`, `/ warp`: this row's throughput over the peer's, ratio of the medians and,
+time from /proc/stat minus this process's, over the wall time; median of the samples). `/ embree-2t`,
+`/ open3d`, `/ warp`: this row's throughput over the peer's, ratio of the medians and,
 in brackets, the range of the per-round ratios (same round, same noise). `agree`: fraction of rays
 with the reference's hit or miss, primitive and t (within 16 u (t + s) / max(|cos|, 1e-3));
 `agree (ties)` also accepts another primitive at the same t; any hits: the same hit or miss.
@@ -823,6 +1107,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help=f"also the serial SAH tree, on scenes up to {SAH_MAX_TRIANGLES:,} triangles")
     p.add_argument("--views", type=Path, default=None, help="also write what each camera sees here")
     common.add_run_options(p)
+    p._option_string_actions["--no-peers"].help = "skip Embree, Open3D and warp"
     args = p.parse_args(argv)
     for name in ("repeats", "ao_samples"):
         if getattr(args, name) < 1:
@@ -861,7 +1146,7 @@ def main(argv: list[str] | None = None) -> dict:
     command = common.command_line("bench_traverse.py", argv)
     source = source_state()
     ctx = dev.get_context(args.device)
-    peers, peer_status = common.load_peers(not args.no_peers)
+    peers, peer_status = common.load_peers(not args.no_peers, TRACE_PEERS)
     cameras = common.load_cameras()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -885,17 +1170,22 @@ def main(argv: list[str] | None = None) -> dict:
                      "ao_distance": AO_DISTANCE, "judge": args.judge, "sah": args.sah,
                      "quick": args.quick, "reference": REFERENCE,
                      "fallback_reference": FALLBACK_REFERENCE, "embree_chunks": EMBREE_CHUNKS,
-                     "warp_constructor": WARP_CONSTRUCTOR,
+                     "warp_constructor": WARP_CONSTRUCTOR, "build_repeats": BUILD_REPEATS,
+                     "goal": {"peers": list(GOAL_PEERS), "default_at_least": GOAL_DEFAULT,
+                              "best_at_least": GOAL_BEST, "build_factor": GOAL_BUILD_FACTOR,
+                              "candidates": list(GOAL_CANDIDATES), "judged_query": "closest"},
                      "t_bound": common.AGREEMENT_T_BOUND},
         "scenes": scenes, "skipped": skipped, "rows": rows,
         "closest_ratios": closest_ratios(rows),
         "targets": targets(rows, [s["name"] for s in scenes]),
+        "goal": goal(rows, scenes),
         "watertight_price": watertight_price(rows),
         "cpu_use": cpu_use(rows),
         "other_load": {"median": median_or_none([r["other_load"] for r in rows]),
                        "max": max((r["other_load"] for r in rows if r["other_load"] is not None),
                                   default=None)},
     }
+    report["goal_verdict"] = goal_verdict(report["goal"])
     write_outputs(report, out, started)
     return report
 

@@ -538,6 +538,29 @@ class Open3D:
     def _rays(self, origins: np.ndarray, directions: np.ndarray) -> Any:
         return self._tensor(np.hstack([origins, directions]).astype(np.float32))
 
+    # -- ray casting (bench_traverse.py) ------------------------------------------------
+    # Open3D 0.20's CPU RaycastingScene (RaycastingScene.cpp): an Embree 4 device made
+    # with "threads=<nthreads>" (the build), a scene with RTC_SCENE_FLAG_ROBUST, and each
+    # query one rtcIntersect1 / rtcOccluded1 per ray, the rays in blocks of 1024 spread
+    # over a TBB arena of nthreads threads; cast_rays also writes the barycentrics and
+    # the unit normals of the hits (its dictionary's other entries).
+
+    def cast_rays(self, scene: Any, origins: np.ndarray,
+                  directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``cast_rays``: closest hits ``(t float32, prim int32)``, ``inf`` / ``-1`` on a
+        miss (its ``INVALID_ID``, 2^32 - 1, read as int32), ``t`` in units of the
+        direction's length, from ``tnear = 0``."""
+        out = scene.cast_rays(self._rays(origins, directions), nthreads=self.threads)
+        prim = out["primitive_ids"].numpy().view(np.int32)
+        t = np.where(prim >= 0, out["t_hit"].numpy(), np.inf).astype(np.float32)
+        return t, prim
+
+    def test_occlusions(self, scene: Any, origins: np.ndarray, directions: np.ndarray,
+                        tmax: float = float("inf")) -> np.ndarray:
+        """``test_occlusions`` with ``tnear = 0``, ``tfar = tmax``: any hit, ``bool (N,)``."""
+        return scene.test_occlusions(self._rays(origins, directions), tnear=0.0,
+                                     tfar=float(tmax), nthreads=self.threads).numpy()
+
     def closest_points(self, scene: Any, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``compute_closest_points``: ``(distance float32, triangle int32)``, the distance
         that of the closest point it answers (in numpy, float32)."""

@@ -39,7 +39,13 @@ def _expected_tracers() -> set[str]:
         names |= {"embree-1t", "embree-2t"}
     if _importable("warp"):
         names.add("warp")
+    if _importable("open3d"):
+        names.add(bench.OPEN3D)
     return names
+
+
+#: The row families of our trees (their rows carry the traversal counters).
+OUR_FAMILIES = ("lbvh", "sah", "moller", "kernel")
 
 
 # -- the quick mode, end to end -------------------------------------------------------
@@ -63,13 +69,38 @@ def test_quick_json_has_every_field_for_every_query_and_tracer(quick):
             assert {r["tracer"] for r in rows} == expected and len(rows) == len(expected)
     for row in data["rows"]:
         assert set(bench.ROW_FIELDS) <= set(row), set(bench.ROW_FIELDS) - set(row)
-        for name in ("hit_fraction", "agreement", "overflow_count", "other_load"):
+        for name in ("hit_fraction", "agreement", "overflow_count", "other_load", "nodes_per_ray",
+                     "tris_per_ray"):
             if row[name] is None:
                 assert row["null_reasons"].get(name), f"{row['tracer']}: {name} null without reason"
         for peer, ratio in row["vs"].items():
             if ratio is None:
                 assert row["null_reasons"][f"vs {peer}"]
     assert set(data["cpu_use"]) and all(v > 0 for v in data["cpu_use"].values())
+
+
+def test_quick_every_tree_row_counts_nodes_and_triangles_per_ray(quick):
+    """Every row of our trees (API, Moller, kernel only; closest, any, AO) has the mean
+    nodes visited and triangles tested per ray; the kernel-only row has its API row's."""
+    _, report = quick
+    rows = {(r["query"], r["tracer"]): r for r in report["rows"]}
+    for (query, tracer), row in rows.items():
+        who = f"{query} {tracer}"
+        if row["family"] not in OUR_FAMILIES:
+            assert row["nodes_per_ray"] is None and row["tris_per_ray"] is None, who
+            continue
+        assert _finite_positive(row["nodes_per_ray"]) and row["nodes_per_ray"] >= 1, who  # the root
+        assert _finite_positive(row["tris_per_ray"]), who
+        n = report["scenes"][0]["triangles"]       # at most every node, every triangle
+        assert row["nodes_per_ray"] < 2 * n and row["tris_per_ray"] <= n, who
+        if query == "closest" and row["family"] != "kernel":   # a hit tested at least its triangle
+            assert row["tris_per_ray"] >= row["hit_fraction"], who
+        if row["family"] == "kernel":
+            api = rows[(query, tracer.removesuffix(" (kernel only)"))]
+            assert (row["nodes_per_ray"], row["tris_per_ray"]) == (api["nodes_per_ray"], api["tris_per_ray"])
+    for r in report["closest_ratios"]:
+        row = rows[("closest", r["tracer"])]
+        assert (r["nodes_per_ray"], r["tris_per_ray"]) == (row["nodes_per_ray"], row["tris_per_ray"])
 
 
 def test_quick_timings_are_medians_of_every_round(quick):
@@ -108,6 +139,8 @@ def test_quick_agreement_is_one_or_every_disagreement_is_judged_right(quick):
                 f"{who}: {a['wrong']} rays wrong by the float64 oracle"
         if row["tracer"] == reference:
             assert a["fraction"] == 1.0 and a["disagree"] == 0
+        if row["tracer"] == bench.OPEN3D:     # Embree inside, robust: near the reference
+            assert a["fraction_with_ties"] >= 0.99, who
     ao = {r["tracer"]: r["hit_fraction"] for r in report["rows"] if r["query"] == "ao"}
     assert 0 < ao[bench.OURS] < 1        # AO rays are neither all blocked nor all free
 
@@ -117,7 +150,7 @@ def test_quick_ratios_and_targets(quick):
     rows = {(r["query"], r["tracer"]): r for r in report["rows"]}
     for query in bench.QUERIES:
         mine = rows[(query, bench.OURS)]
-        for peer in ("embree-2t", "warp"):
+        for peer in ("embree-2t", bench.OPEN3D, "warp"):
             ratio = mine["vs"][peer]
             if (query, peer) not in rows:
                 assert ratio is None
@@ -156,15 +189,112 @@ def test_quick_prices_watertightness_on_every_query(quick):
         assert w["watertight_agreement"] == tight["agreement"]
 
 
+def test_quick_goal_has_the_default_and_the_best_tree_against_open3d_and_embree(quick):
+    """Issue 16's goal: per scene the default tree and the fastest tree built in under
+    5x its build time, their ratios those of the rows, the status from the numbers."""
+    _, report = quick
+    rows = {(r["scene"], r["query"], r["tracer"]): r for r in report["rows"]}
+    for sc in report["scenes"]:
+        mine = [e for e in report["goal"] if e["scene"] == sc["name"]]
+        entries = {e["role"]: e for e in mine}
+        assert [e["role"] for e in mine].count("best") == 1 and {e["role"] for e in mine} <= {
+            "default", "best", "other"}
+        assert entries["default"]["tree"] == bench.OURS and entries["default"]["build_factor"] == 1.0
+        build = sc["build_seconds"]
+        assert all(len(sc["build_samples"][t]) == bench.BUILD_REPEATS for t in build
+                   if t in bench.GOAL_CANDIDATES and t != "sah")
+        candidates = [t for t in bench.GOAL_CANDIDATES if (sc["name"], "closest", t) in rows]
+        eligible = [t for t in candidates if build[t] < bench.GOAL_BUILD_FACTOR * build[bench.OURS]]
+        speed = {t: rows[(sc["name"], "closest", t)]["rays_per_second"] for t in candidates}
+        assert entries["best"]["tree"] == max(eligible, key=speed.get)
+        others = [e["tree"] for e in mine if e["role"] == "other"]
+        assert sorted(others) == sorted(set(candidates) - {bench.OURS, entries["best"]["tree"]})
+        for e in mine:
+            role = e["role"]
+            assert e["build_factor"] == pytest.approx(build[e["tree"]] / build[bench.OURS])
+            assert set(e["queries"]) == set(bench.QUERIES)
+            for query, q in e["queries"].items():
+                row = rows[(sc["name"], query, e["tree"])]
+                assert q["rays_per_second"] == row["rays_per_second"]
+                assert q["nodes_per_ray"] == row["nodes_per_ray"] and q["tris_per_ray"] == row["tris_per_ray"]
+                for peer in bench.GOAL_PEERS:
+                    assert q["vs"][peer] == row["vs"][peer]
+            if role == "other":
+                assert e["at_least"] is None and e["status"] is None and e["not_judged"]
+                continue
+            assert e["at_least"] == (bench.GOAL_DEFAULT if role == "default" else bench.GOAL_BEST)
+            vs = e["queries"]["closest"]["vs"]
+            if any(vs[p] is None for p in bench.GOAL_PEERS):
+                assert e["status"] == "NOT MEASURED"
+            else:
+                assert e["status"] == ("MET" if all(vs[p]["ratio"] >= e["at_least"]
+                                                    for p in bench.GOAL_PEERS) else "NOT MET")
+    judged = [e["status"] for e in report["goal"] if e["at_least"] is not None]
+    want = ("NOT MEASURED" if "NOT MEASURED" in judged else "NOT MET" if "NOT MET" in judged else "MET")
+    assert report["goal_verdict"]["closest"]["status"] == want
+    assert set(report["goal_verdict"]) == set(bench.QUERIES)
+
+
+def test_goal_judges_from_the_numbers():
+    """The goal on made-up rows: the best tree is the fastest built fast enough, each
+    status follows from the ratios, a missing peer makes it NOT MEASURED."""
+    def row(tracer, query, mrays, vs):
+        return {"scene": "s", "query": query, "tracer": tracer, "threads": None, "cpu_over_wall": 2.0,
+                "other_load": 0.0, "rays_per_second": mrays * 1e6, "nodes_per_ray": 10.0,
+                "tris_per_ray": 3.0, "vs": {p: (None if r is None else
+                                                {"ratio": r, "round_min": r, "round_max": r})
+                                            for p, r in vs.items()}}
+    build = {bench.OURS: 1.0, f"{bench.OURS}+collapse": 2.0, bench.TREELETS: 4.0, "sah": 50.0}
+    speeds = {bench.OURS: (1.0, 0.9, 0.85), f"{bench.OURS}+collapse": (1.1, 1.0, 1.0),
+              bench.TREELETS: (1.3, 1.2, 1.05), "sah": (1.5, 1.4, 1.3)}
+    rows = [row(t, q, 3.0 * s[0], {bench.OPEN3D: s[1], "embree-2t": s[2]})
+            for t, s in speeds.items() for q in bench.QUERIES]
+    scenes = [{"name": "s", "build_seconds": build}]
+    entries = bench.goal(rows, scenes)
+    by_tree = {(e["role"], e["tree"]): e for e in entries}
+    assert by_tree[("default", bench.OURS)]["status"] == "MET"
+    assert by_tree[("best", bench.TREELETS)]["status"] == "MET"
+    assert "slower" in by_tree[("other", f"{bench.OURS}+collapse")]["not_judged"]
+    assert "50.0x" in by_tree[("other", "sah")]["not_judged"]
+    assert by_tree[("other", "sah")]["status"] is None and len(entries) == 4
+    assert bench.goal_verdict(entries)["closest"]["status"] == "MET"
+    # the default tree the fastest: judged twice, at 0.8x and at 1.0x (1.05x open3d, 0.9x embree-2t)
+    fast_default = [dict(r, rays_per_second=1e9, vs={bench.OPEN3D: {"ratio": 1.05, "round_min": 1, "round_max": 1},
+                                                   "embree-2t": {"ratio": 0.9, "round_min": 1, "round_max": 1}})
+                    if r["tracer"] == bench.OURS else r for r in rows]
+    entries = bench.goal(fast_default, scenes)
+    assert [(e["role"], e["tree"], e["status"]) for e in entries][:2] == [
+        ("default", bench.OURS, "MET"), ("best", bench.OURS, "NOT MET")]
+    # the best tree 0.95x embree-2t: NOT MET, said in the verdict
+    rows = [dict(r, vs={**r["vs"], "embree-2t": {"ratio": 0.95, "round_min": 0.9, "round_max": 1.0}})
+            if r["tracer"] == bench.TREELETS else r for r in rows]
+    entries = bench.goal(rows, scenes)
+    verdict = bench.goal_verdict(entries)["closest"]
+    assert verdict["status"] == "NOT MET" and verdict["met"] == 1 and verdict["judged"] == 2
+    assert "0.95x embree-2t" in verdict["why"][0]
+    # no Open3D: not measured
+    rows = [dict(r, vs={**r["vs"], bench.OPEN3D: None}) for r in rows]
+    verdict = bench.goal_verdict(bench.goal(rows, scenes))["closest"]
+    assert verdict["status"] == "NOT MEASURED" and verdict["why"] == [f"{bench.OPEN3D} not in this run"]
+
+
 def test_quick_markdown_has_the_tables_and_targets(quick):
     out, report = quick
     text = (out / "bench_traverse.md").read_text()
-    for heading in ("## Closest hit: ours against the peers", "## Targets", "## Every tracer, every query"):
+    for heading in ("## Goal (issue 16", "## Closest hit: ours against the peers", "## Targets",
+                    "## Every tracer, every query"):
         assert heading in text
     assert "## The price of watertightness" in text
     assert text.count(f"| {report['scenes'][0]['name']} | ") == (
-        len(report["rows"]) + len(report["closest_ratios"]) + len(report["watertight_price"]))
-    assert text.count("**MET**") + text.count("**NOT MET**") + text.count("NOT MEASURED") == len(report["targets"])
+        len(report["rows"]) + len(report["closest_ratios"]) + len(report["watertight_price"])
+        + len(report["goal"]))
+    verdict = [line for line in text.splitlines() if line.startswith("**Verdict, closest hit: ")]
+    assert len(verdict) == 1 and report["goal_verdict"]["closest"]["status"] + "**" in verdict[0]
+    targets = text.split("## Targets", 1)[1].split("\n## ", 1)[0]
+    assert targets.count("**MET**") + targets.count("**NOT MET**") + targets.count("NOT MEASURED") == len(report["targets"])
+    header = next(line for line in text.splitlines() if line.startswith("| scene | query | tracer |"))
+    for column in ("nodes/ray", "tris/ray", "/ open3d"):
+        assert f"| {column} |" in header
 
 
 def test_without_peers_the_reference_is_ours_and_targets_are_not_measured(tmp_path):
@@ -173,6 +303,8 @@ def test_without_peers_the_reference_is_ours_and_targets_are_not_measured(tmp_pa
     assert {r["family"] for r in report["rows"]} <= {"lbvh", "moller", "kernel"}
     assert report["scenes"][0]["comparisons"]["closest"]["reference"] == bench.FALLBACK_REFERENCE
     assert report["targets"] and all(t["status"].startswith("NOT MEASURED") for t in report["targets"])
+    assert report["goal_verdict"]["closest"]["status"] == "NOT MEASURED"
+    assert all(r["nodes_per_ray"] is not None for r in report["rows"])
 
 
 def test_missing_scene_is_skipped_with_reason_and_bad_arguments_refused(tmp_path):
