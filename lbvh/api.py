@@ -204,9 +204,12 @@ def build_parts(vertices: Any, faces: Any = None, part_triangles: int = 1 << 24,
     else:
         v, f = as_mesh(vertices, faces)
     parts, meshes = morton_parts(v, f, int(part_triangles)), []
+    local = np.empty(len(v), np.int64)
     for part in parts:
-        used, local = np.unique(f[part], return_inverse=True)
-        meshes.append(build(v[used], local.reshape(-1, 3).astype(np.uint32), **options))
+        corners = f[part]
+        used = np.flatnonzero(np.bincount(corners.ravel(), minlength=len(v)))   # ascending
+        local[used] = np.arange(len(used))    # the part's own vertex numbering
+        meshes.append(build(v[used], local[corners].astype(np.uint32), **options))
     eye = np.tile(np.eye(3, 4), (len(parts), 1, 1))
     return Scene(meshes, np.arange(len(parts)), eye, names=[f"part {k}" for k in range(len(parts))],
                  face_ids=[p.astype(np.int32) for p in parts])
