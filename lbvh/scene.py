@@ -35,6 +35,7 @@ from .builders.pipeline import build_tree
 from .bvh import BVH
 from .layout import is_leaf
 from .mesh import real_array
+from .queries.closest import check_points
 from .queries.instances import SceneBuffers, SceneHits, intersect_scene
 from .queries.rays import InvalidRays
 from .tree import Mesh
@@ -302,6 +303,113 @@ class Scene:
                                    triangle_test=triangle_test, batch_size=batch_size,
                                    invalid_rays=invalid_rays)
         return hits if return_hits else hits.mask
+
+    # -- point queries -------------------------------------------------------------
+    def _similarity_scales(self, what: str) -> np.ndarray:
+        """``float64 (I,)``: each instance's scale, where every transform is a similarity
+        (a rotation or reflection times one scale, plus a translation), else a
+        ``ValueError``: other transforms do not keep distances in proportion."""
+        a = self._transforms[:, :, :3]
+        gram = np.einsum("ikj,ikl->ijl", a, a)                 # A^T A = s^2 I for a similarity
+        s2 = np.trace(gram, axis1=1, axis2=2) / 3
+        off = np.abs(gram - s2[:, None, None] * np.eye(3)).max(axis=(1, 2))
+        bad = off > 1e-6 * s2
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise ValueError(f"{what}: instance {i} is not placed by a rotation, reflection and "
+                             "one scale (a shear or non-uniform scale changes distances); "
+                             "flatten the scene (scene.flattened()) for this query")
+        return np.sqrt(s2)
+
+    def closest_points(self, points: Any, max_distance: float = np.inf) -> tuple[np.ndarray, ...]:
+        """The closest point of the scene to each point within ``max_distance``, for scenes
+        whose instances are placed by similarities (rotations, reflections, one scale per
+        instance, translations): each instance's mesh answers the point moved into its
+        space (:meth:`lbvh.BVH.closest_points`), its distance scaled back, and the
+        nearest wins; an instance whose world box is farther than the best so far is
+        skipped.
+
+        Returns:
+            ``(distance float32 (N,), points float32 (N, 3), instance int32 (N,),
+            prim int32 (N,))``: ``inf``, NaN, ``-1`` and ``-1`` where nothing is within
+            ``max_distance``; ``prim`` is the triangle within the instance's mesh (or its
+            ``face_ids`` number).
+        """
+        scale = self._similarity_scales("closest_points")
+        p = check_points(points).astype(np.float64)
+        n = len(p)
+        try:
+            limit = float(max_distance)
+        except (TypeError, ValueError):
+            limit = float("nan")
+        if not limit >= 0:
+            raise ValueError(f"max_distance: {max_distance!r}; expected a number >= 0 or inf")
+        best = np.full(n, limit)
+        where = np.full((n, 3), np.nan)
+        inst = np.full(n, -1, np.int32)
+        prim = np.full(n, -1, np.int32)
+        lo, hi = self._world_boxes()
+        a, b = self._transforms[:, :, :3], self._transforms[:, :, 3]
+        inv = np.linalg.inv(a)
+        for i in np.argsort(scale):   # any order is right; this one tends to prune early
+            gap = np.maximum(np.maximum(lo[i] - p, p - hi[i]), 0)
+            near = np.flatnonzero(np.sqrt((gap * gap).sum(axis=1)) <= best)
+            if not len(near):
+                continue
+            mesh = self.meshes[self.mesh_of[i]]
+            local = (p[near] - b[i]) @ inv[i].T
+            got = mesh.closest_points(local.astype(np.float32),
+                                      max_distance=float(np.max(best[near]) / scale[i]))
+            d = got.distance.astype(np.float64) * scale[i]
+            better = got.found & (d < best[near])
+            k = near[better]
+            best[k] = d[better]
+            where[k] = got.points[better].astype(np.float64) @ a[i].T + b[i]
+            inst[k] = i
+            ids = got.prim[better]
+            prim[k] = ids if self.face_ids is None else self.face_ids[self.mesh_of[i]][ids]
+        found = inst >= 0
+        distance = np.where(found, best, np.inf).astype(np.float32)
+        return distance, where.astype(np.float32), inst, prim
+
+    def _world_boxes(self) -> tuple[np.ndarray, np.ndarray]:
+        """``float32 (I, 3)`` corners of the instances' world boxes (the top level's)."""
+        top = self.top
+        leaf = top.is_leaf
+        first = top.prim_range[:, 0]
+        lo = np.empty((self.num_instances, 3), np.float32)
+        hi = np.empty((self.num_instances, 3), np.float32)
+        slots = first[leaf]
+        inst = np.asarray(top.prim_order)[slots]
+        lo[inst], hi[inst] = top.lower[leaf], top.upper[leaf]
+        return lo, hi
+
+    def winding_numbers(self, points: Any) -> np.ndarray:
+        """``float32 (N,)``: the generalised winding number of the scene, the sum of each
+        instance's mesh's at the point moved into its space, negated for a reflection.
+        Exact (as each mesh's) for similarities, whose solid angles are those of the
+        world; for other transforms exact for closed meshes only (a winding number of a
+        closed surface is a degree, kept by any affine map) and an approximation of
+        open ones'."""
+        p = check_points(points).astype(np.float64)
+        w = np.zeros(len(p))
+        a, b = self._transforms[:, :, :3], self._transforms[:, :, 3]
+        inv = np.linalg.inv(a)
+        sign = np.sign(np.linalg.det(a))
+        for i in range(self.num_instances):
+            local = ((p - b[i]) @ inv[i].T).astype(np.float32)
+            w += sign[i] * self.meshes[self.mesh_of[i]].winding_numbers(local)
+        return w.astype(np.float32)
+
+    def contains(self, points: Any) -> np.ndarray:
+        """``bool (N,)``: winding number of the scene > 1/2 (:meth:`winding_numbers`)."""
+        return self.winding_numbers(points) > 0.5
+
+    def signed_distance(self, points: Any) -> np.ndarray:
+        """``float32 (N,)``: the distance to the scene (:meth:`closest_points`), negative
+        inside (:meth:`contains`)."""
+        distance = self.closest_points(points)[0]
+        return np.where(self.contains(points), -distance, distance)
 
     def __reduce__(self) -> tuple:
         """Pickling: the meshes (each :class:`lbvh.BVH` pickles its arrays), the instances

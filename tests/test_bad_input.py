@@ -228,6 +228,12 @@ ROWS: list[Row] = [
         ValueError, "item 1 is a str"),
     Row("lbvh.Scene", "a singular transform", lambda e: lbvh.Scene([e.bvh], [0], np.zeros((1, 3, 4))),
         ValueError, "instance 0 is singular"),
+    Row("lbvh.Scene.closest_points", "a sheared instance", lambda e: lbvh.Scene(
+        [e.bvh], [0], np.array([[[1, 0.5, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]])).closest_points(e.o),
+        ValueError, "instance 0 is not placed by a rotation"),
+    Row("lbvh.Scene.closest_points", "negative max_distance", lambda e: lbvh.Scene(
+        [e.bvh], [0], np.eye(3, 4)[None]).closest_points(e.o, max_distance=-1), ValueError,
+        "max_distance: -1"),
     Row("lbvh.build", "a trimesh.PointCloud", lambda e: _b(e, __import__("trimesh").PointCloud(e.v)),
         ValueError, "has vertices but no faces"),
     Row("lbvh.build", "a mesh and its faces", lambda e: _b(

@@ -187,3 +187,51 @@ def test_a_mesh_beyond_the_largest_buffer_is_built_in_parts(monkeypatch):
     o, d = rays_at(v, f, 1000, 11)
     monkeypatch.undo()
     assert np.array_equal(scene.intersect(o, d).t, lbvh.build(v, f).intersect(o, d).t)
+
+
+def similarity_transforms(count: int, seed: int) -> np.ndarray:
+    """Rotations and reflections times one scale each, and translations."""
+    rng = np.random.default_rng(seed)
+    t = np.zeros((count, 3, 4))
+    for i in range(count):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        t[i, :, :3] = q * rng.uniform(0.3, 2.0)
+        t[i, :, 3] = rng.uniform(-6, 6, 3)
+    return t
+
+
+def test_point_queries_through_a_scene_of_similarities():
+    from lbvh.queries.closest import closest_points_numpy
+    from lbvh.queries.winding import winding_numbers_numpy
+    from lbvh.verification.error_bound import WINDING_BOUND
+    ball = lbvh.build(*meshes.cube_sphere(6))          # closed
+    teapot = lbvh.build(*shipped_mesh("teapot.obj"))   # open
+    scene = lbvh.Scene([ball, teapot], [0, 1, 0, 0, 1], similarity_transforms(5, 12))
+    v, f, owner = scene.flattened()
+    rng = np.random.default_rng(13)
+    lo, hi = v.min(0), v.max(0)
+    p = (lo + (hi - lo) * rng.uniform(-0.1, 1.1, (600, 3))).astype(np.float32)
+    distance, where, inst, prim = scene.closest_points(p)
+    want_d, want_q, want_f = closest_points_numpy(v, f, p)
+    assert np.allclose(distance, want_d, rtol=1e-5, atol=1e-5 * np.abs(v).max())
+    assert np.allclose(where, want_q, atol=1e-4 * np.abs(v).max())
+    assert (inst >= 0).all()
+    # within a radius: nothing beyond it
+    near = scene.closest_points(p, max_distance=0.3)[0]
+    clear = np.abs(want_d - 0.3) > 1e-5                 # not within rounding of the radius
+    assert np.array_equal(np.isfinite(near)[clear], (want_d < 0.3)[clear])
+    assert (want_d < 0.3).any() and (want_d > 0.3).any()
+    # winding numbers add up over the instances (a reflection flips one's sign): each
+    # instance's within WINDING_BOUND of its exact sum
+    w = scene.winding_numbers(p)
+    exact = winding_numbers_numpy(v, f, p)
+    bound = scene.num_instances * WINDING_BOUND
+    assert np.abs(w - exact).max() <= bound
+    sure = np.abs(exact - 0.5) > bound
+    assert np.array_equal(scene.contains(p)[sure], (exact > 0.5)[sure]) and (exact[sure] > 0.5).any()
+    sd = scene.signed_distance(p)
+    assert np.array_equal(sd < 0, scene.contains(p) & (distance > 0))
+    # a shear keeps no distances in proportion: refused, named
+    sheared = lbvh.Scene([ball], [0], np.array([[[1, 0.5, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]]))
+    with pytest.raises(ValueError, match="instance 0 is not placed by a rotation"):
+        sheared.closest_points(p[:3])
