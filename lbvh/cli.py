@@ -39,7 +39,7 @@ from .rendering.camera import (DEFAULT_FOV, DEFAULT_SIZE, MAX_SIDE, Camera, fram
                                views_name)
 from .rendering.image import image_kind
 from .rendering.render import AO_SAMPLES, MODES, check_mode, render
-from .rendering.scene import Scene, find_scene, load_scene
+from .rendering.scene import Scene, find_scene, load_scene, placed_geometries
 from .scene import Scene as LbvhScene
 from .verification import selftest
 from .verification.check import add_arguments as add_check_arguments
@@ -165,13 +165,15 @@ def _build(scene, args: argparse.Namespace):
                  treelet_rounds=args.treelets, key_bits=args.keys, device=args.device)
 
 
-def _one_mesh(bvh, what: str):
-    """``bvh`` itself, or a clear error where a command takes one mesh and got a scene."""
-    if isinstance(bvh, LbvhScene):
-        raise ValueError(f"{what}: the file places {bvh.num_instances} instances of "
-                         f"{len(bvh.meshes)} meshes; this command takes one mesh for now "
+def _one_mesh(scene, what: str) -> None:
+    """A clear error, before any build, where a command takes one mesh and the file
+    places several (``scene.extras["instances"]``, a ``trimesh.Scene``)."""
+    source = scene.extras.get("instances")
+    if source is not None:
+        placed = placed_geometries(source)
+        raise ValueError(f"{what}: the file places {len(placed)} instances of "
+                         f"{len(set(placed))} meshes; this command takes one mesh for now "
                          "(flatten it, e.g. with trimesh's to_mesh())")
-    return bvh
 
 
 def _scene_name(text: str) -> str:
@@ -325,7 +327,8 @@ def cmd_query(args: argparse.Namespace) -> int:
     reads, writes = QUERY_KINDS[args.kind]
     data = _read_points(args.input) if reads == "points" else _read_rays(args.input)
     scene = load_scene(args.scene)
-    bvh = _one_mesh(_build(scene, args), f"query {args.kind}")
+    _one_mesh(scene, f"query {args.kind}")
+    bvh = _build(scene, args)
     start = time.perf_counter()
     arrays, fields, lines = _run_query(bvh, args.kind, data, args)
     seconds = time.perf_counter() - start

@@ -243,6 +243,7 @@ class Scene:
         self._place(new)
         return self
 
+    @dev.serialised
     def flattened(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The one mesh the scene stands for: ``float32 (V, 3)`` vertices (every
         instance's, transformed in float64), ``uint32 (F, 3)`` faces and ``int32 (F,)``
@@ -321,6 +322,7 @@ class Scene:
                              "flatten the scene (scene.flattened()) for this query")
         return np.sqrt(s2)
 
+    @dev.serialised
     def closest_points(self, points: Any, max_distance: float = np.inf) -> tuple[np.ndarray, ...]:
         """The closest point of the scene to each point within ``max_distance``, for scenes
         whose instances are placed by similarities (rotations, reflections, one scale per
@@ -384,6 +386,7 @@ class Scene:
         lo[inst], hi[inst] = top.lower[leaf], top.upper[leaf]
         return lo, hi
 
+    @dev.serialised
     def winding_numbers(self, points: Any) -> np.ndarray:
         """``float32 (N,)``: the generalised winding number of the scene, the sum of each
         instance's mesh's at the point moved into its space, negated for a reflection.

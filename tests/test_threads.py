@@ -75,6 +75,11 @@ JOBS = {
     "signed distance": lambda: digest(shared.signed_distance(o[:300])),
     "scene intersect": lambda: digest(*(lambda h: (h.t, h.prim, h.instance))(scene.intersect(o, d))),
     "new scene": lambda: digest(lbvh.Scene([shared], [0, 0], moves * 2).occluded(o, d)),
+    "scene closest points": lambda: digest(*scene.closest_points(o[:300])[:3]),
+    "scene contains": lambda: digest(scene.contains(o[:300])),
+    "moved scene": lambda: (lambda s: digest(s.set_transforms([1], moves[1:] * 1.5).intersect(o, d).t,
+                                             *s.closest_points(o[:200])[:3]))(
+        lbvh.Scene([shared], [0, 0], moves)),
     "intersect async": lambda: digest(*(lambda h: (h.t, h.prim))(
         shared.intersect_async(o, d).result())),
     "intersect device arrays": lambda: digest(*(lambda h: (h.t, h.prim))(shared.intersect(

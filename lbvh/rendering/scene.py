@@ -104,10 +104,11 @@ def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     return _load(path)[:2]
 
 
-def _placed_meshes(loaded: Any) -> int:
-    """How many nodes of a trimesh scene's graph place a triangle mesh."""
-    return sum(1 for node in loaded.graph.nodes_geometry
-               if len(getattr(loaded.geometry.get(loaded.graph[node][1]), "faces", ())) > 0)
+def placed_geometries(loaded: Any) -> list[str]:
+    """The geometry name of each node of a trimesh scene's graph that places a
+    triangle mesh (a name once per placement)."""
+    names = [loaded.graph[node][1] for node in loaded.graph.nodes_geometry]
+    return [g for g in names if len(getattr(loaded.geometry.get(g), "faces", ())) > 0]
 
 
 def _load(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, Any]:
@@ -137,7 +138,7 @@ def _load(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, Any]:
     if isinstance(loaded, trimesh.Scene):
         if not loaded.geometry:
             raise ValueError(f"{path}: the file holds no mesh")
-        structure = loaded if _placed_meshes(loaded) > 1 else None
+        structure = loaded if len(placed_geometries(loaded)) > 1 else None
         try:
             loaded = loaded.to_geometry() if hasattr(loaded, "to_geometry") else loaded.dump(concatenate=True)
         except Exception as exc:
