@@ -41,6 +41,7 @@ from . import data
 from .api import build, build_parts, build_scene, load
 from .builders.options import (CollapseOptions, LBVHOptions, SAHOptions, SBVHOptions,
                                SplitOptions)
+from .builders.ray_sampled import RaySample
 from .bvh import BVH
 from .scene import Scene
 from .device import CONTEXT_CHECKS, DeviceError
@@ -62,6 +63,6 @@ if _self_test not in CONTEXT_CHECKS:
     CONTEXT_CHECKS.append(_self_test)
 
 __all__ = ["build", "build_parts", "build_scene", "load", "BVH", "Scene", "Hits", "AllHits", "Closest", "Overlaps", "LBVHOptions",
-           "SAHOptions", "SplitOptions", "SBVHOptions", "CollapseOptions",
+           "SAHOptions", "SplitOptions", "SBVHOptions", "CollapseOptions", "RaySample",
            "render", "Camera", "load_scene", "sah_cost", "tree_quality", "BVHValidationError",
            "DeviceError", "data", "__version__"]

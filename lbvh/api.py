@@ -8,6 +8,7 @@ or a list) becomes a :class:`lbvh.Scene` of instances.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from pathlib import Path
@@ -74,6 +75,9 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
         c_node, c_tri, max_leaf_size: the fields of ``SAHOptions`` (``"sah"``) or, with
             ``collapse=True``, of ``CollapseOptions``; ``max_leaf_size`` alone: of
             ``SplitOptions`` (``"median"``, ``"midpoint"``); not given, the default.
+            ``rays`` (an ``(origins, directions)`` pair or :class:`lbvh.RaySample`),
+            ``ray_prior``, ``ray_candidates`` (``"sah"``): splits costed by a sample
+            of the rays the tree is for (see :class:`lbvh.SAHOptions`).
         unknown: any other name is refused with a ``ValueError`` naming it.
 
     Returns:
@@ -111,8 +115,15 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
         ctx.queue.finish()
         upload = time.perf_counter() - t0
         if builder == "sah":
+            t0 = time.perf_counter()
+            untraced = build_options.rays is not None and build_options.rays.tmax is None
+            build_options = _traced_ray_sample(ctx, mesh, build_options)
+            traced = time.perf_counter() - t0
             tree = sah.build_tree(ctx, mesh, build_options, progress)
             tree.report.upload_seconds += upload
+            if untraced:   # the sample's rays through the default LBVH are part of this build
+                tree.report.wall_seconds += traced
+                tree.report.phase_seconds["trace ray sample"] = traced
             return BVH(mesh, tree)
         if builder == "sbvh":
             tree = sbvh.build_tree(ctx, mesh, build_options, progress)
@@ -123,6 +134,17 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
             tree.report.upload_seconds += upload
             return BVH(mesh, tree)
         return _build_lbvh(ctx, mesh, upload, build_options, collapse_options)
+
+
+def _traced_ray_sample(ctx: dev.Context, mesh: Mesh, options: SAHOptions) -> SAHOptions:
+    """``options`` whose ray sample (if any) ends at each ray's closest hit: rays not
+    traced yet go through the mesh's default LBVH first (dropped after)."""
+    sample = options.rays
+    if sample is None or sample.tmax is not None:
+        return options
+    first = _build_lbvh(ctx, mesh, 0.0, LBVHOptions(), None)
+    hits = first.intersect(sample.origins, sample.directions)
+    return dataclasses.replace(options, rays=sample.ended_at(hits.t))
 
 
 def is_trimesh_scene(value: Any) -> bool:

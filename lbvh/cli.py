@@ -64,14 +64,14 @@ class _Parser(argparse.ArgumentParser):
 SIZE_PATTERN = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
 
 
-def parse_size(text: str) -> tuple[int, int]:
-    """``"WxH"`` -> ``(W, H)``; ``ValueError`` naming the text otherwise."""
+def parse_size(text: str, option: str = "--size") -> tuple[int, int]:
+    """``"WxH"`` -> ``(W, H)``; ``ValueError`` naming the option and the text otherwise."""
     match = SIZE_PATTERN.match(text)
     if not match:
-        raise ValueError(f"--size: {text!r} is not WIDTHxHEIGHT (e.g. 640x480)")
+        raise ValueError(f"{option}: {text!r} is not WIDTHxHEIGHT (e.g. 640x480)")
     width, height = int(match.group(1)), int(match.group(2))
     if not (1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE):
-        raise ValueError(f"--size: {text!r}: each side must be 1 to {MAX_SIDE} pixels")
+        raise ValueError(f"{option}: {text!r}: each side must be 1 to {MAX_SIDE} pixels")
     return width, height
 
 
@@ -154,15 +154,16 @@ def _add_build_options(p: argparse.ArgumentParser) -> None:
                    help="OpenCL device name substring (default: $LBVH_DEVICE or PoCL's CPU)")
 
 
-def _build(scene, args: argparse.Namespace):
+def _build(scene, args: argparse.Namespace, **extra: Any):
     """The tree the build options ask for; for a file that places several meshes, an
-    :class:`lbvh.Scene` of its instances (each mesh built once with those options)."""
+    :class:`lbvh.Scene` of its instances (each mesh built once with those options).
+    ``extra``: more options of :func:`lbvh.build`."""
     source = scene.extras.get("instances")
     if source is not None:
         return build(source, builder=args.builder, collapse=args.collapse,
-                     treelet_rounds=args.treelets, key_bits=args.keys, device=args.device)
+                     treelet_rounds=args.treelets, key_bits=args.keys, device=args.device, **extra)
     return build(scene.vertices, scene.faces, builder=args.builder, collapse=args.collapse,
-                 treelet_rounds=args.treelets, key_bits=args.keys, device=args.device)
+                 treelet_rounds=args.treelets, key_bits=args.keys, device=args.device, **extra)
 
 
 def _one_mesh(scene, what: str) -> None:
@@ -362,10 +363,17 @@ def cmd_render(args: argparse.Namespace) -> int:
     size = parse_size(args.size) if args.size is not None else None
     if args.ao_samples < 1:
         raise ValueError(f"--ao-samples: {args.ao_samples}, expected at least 1")
+    extra = {}
+    if args.ray_sample is not None:
+        if args.builder != "sah":
+            raise ValueError(f"--ray-sample: for --builder sah only (not {args.builder})")
+        sample_size = parse_size(args.ray_sample, "--ray-sample")
     scene = load_scene(args.scene)
     camera, camera_source = choose_camera(args, scene, size)
+    if args.ray_sample is not None:
+        extra["rays"] = camera.resized(*sample_size).rays()
     start = time.perf_counter()
-    bvh = _build(scene, args)
+    bvh = _build(scene, args, **extra)
     build_seconds = time.perf_counter() - start
     result = render(bvh, camera, args.mode, ao_samples=args.ao_samples,
                     triangle_test=args.triangle_test, order=args.order)
@@ -382,7 +390,8 @@ def cmd_render(args: argparse.Namespace) -> int:
         built = f"depth {report.depth}"
     print(f"camera:    {camera_source}: {describe_camera(camera)}")
     print(f"device:    {bvh.ctx.name}")
-    print(f"build:     {args.builder} in {build_seconds * 1e3:.1f} ms"
+    sampled = "" if args.ray_sample is None else f" (splits by {args.ray_sample} camera rays)"
+    print(f"build:     {args.builder}{sampled} in {build_seconds * 1e3:.1f} ms"
           f"{device_time if not isinstance(bvh, LbvhScene) else ''}, {built}")
     order = "" if args.order == "ordered" else f", {args.order} order"
     print(f"render:    {args.mode} {camera.width}x{camera.height} ({args.triangle_test}{order}) in "
@@ -482,6 +491,10 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--order", default="ordered", choices=["ordered", "global"],
                    help="closest-hit traversal: ordered depth first (default) or global, the "
                         "nearest pending node first (Kay & Kajiya); the same image")
+    p.add_argument("--ray-sample", default=None, metavar="WxH",
+                   help="--builder sah only: cost its splits by a WxH grid of this camera's "
+                        "rays instead of areas (ray-sampled SAH, Nabata et al. 2013); a tree "
+                        "for this view (e.g. 64x48)")
     _add_camera_options(p)
     _add_build_options(p)
     p.set_defaults(func=cmd_render)

@@ -268,6 +268,14 @@ ROWS: list[Row] = [
         ValueError, "collapse: only for builder='lbvh'"),
     Row("lbvh.build", "midpoint with an SAH constant", lambda e: _b(e, e.v, e.f, builder="midpoint",
                                                                      c_tri=2.0), ValueError, "c_tri"),
+    Row("lbvh.build", "SAH ray sample with a NaN origin", lambda e: _b(
+        e, e.v, e.f, builder="sah", rays=(np.array([[0, np.nan, 0]]), np.ones((1, 3)))),
+        ValueError, "origins[0]"),
+    Row("lbvh.build", "SAH ray sample with a zero direction", lambda e: _b(
+        e, e.v, e.f, builder="sah", rays=(np.zeros((2, 3)), np.eye(3)[[0, 0]] * [[1], [0]])),
+        ValueError, "directions[1] is zero"),
+    Row("lbvh.build", "SAH ray_prior=0", lambda e: _b(e, e.v, e.f, builder="sah", rays=(
+        np.zeros((1, 3)), np.ones((1, 3))), ray_prior=0), ValueError, "ray_prior: 0"),
     Row("lbvh.build", "SAH max_leaf_size=0", lambda e: _b(e, e.v, e.f, builder="sah", max_leaf_size=0),
         ValueError, "max_leaf_size: 0"),
     Row("lbvh.build", "unknown device", lambda e: _b(e, e.v, e.f, device="no-such-device"),
@@ -456,6 +464,12 @@ ROWS: list[Row] = [
     Row("lbvh render", "truncated GLB", lambda e: [
         "render", e.path("truncated.glb"), "-o", e.path("out.png")], SystemExit,
         "truncated.glb: cannot read mesh", command=True),
+    Row("lbvh render", "--ray-sample with the lbvh builder", lambda e: [
+        "render", e.path("good.obj"), "-o", e.path("out.png"), "--ray-sample", "8x8"], SystemExit,
+        "--ray-sample: for --builder sah only", command=True),
+    Row("lbvh render", "--ray-sample 8", lambda e: [
+        "render", e.path("good.obj"), "-o", e.path("out.png"), "--builder", "sah",
+        "--ray-sample", "8"], SystemExit, "--ray-sample: '8' is not WIDTHxHEIGHT", command=True),
     Row("lbvh render", "--size 0x10", lambda e: [
         "render", e.path("good.obj"), "-o", e.path("out.png"), "--size", "0x10"], SystemExit,
         "--size: '0x10'", command=True),

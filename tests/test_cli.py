@@ -391,6 +391,15 @@ def test_render_global_order_gives_the_same_image(capsys, tmp_path):
     assert np.array_equal(read_image(tmp_path / "a.exr"), read_image(tmp_path / "b.exr"))
 
 
+def test_render_with_a_ray_sampled_sah_tree(capsys, tmp_path):
+    base = ["render", "teapot", "--size", "48x32", "--mode", "depth", "--builder", "sah"]
+    assert main(base + ["-o", str(tmp_path / "a.exr")]) == 0
+    assert main(base + ["-o", str(tmp_path / "b.exr"), "--ray-sample", "12x8"]) == 0
+    assert "splits by 12x8 camera rays" in capsys.readouterr().out
+    # another tree, the same image: every hit is the same triangle test's
+    assert np.array_equal(read_image(tmp_path / "a.exr"), read_image(tmp_path / "b.exr"))
+
+
 def _placed_meshes_file(path) -> None:
     import trimesh
     source = trimesh.Scene()

@@ -59,6 +59,8 @@ JOBS = {
     "build63+collapse": lambda: tree(lbvh.build(sv, sf, key_bits=63, collapse=True)),
     "build treelets": lambda: tree(lbvh.build(sv, sf, treelet_rounds=1)),
     "build sah": lambda: tree(lbvh.build(sv[:600], sf[:200], builder="sah")),
+    "build sah rays": lambda: tree(lbvh.build(sv[:600], sf[:200], builder="sah",
+                                              rays=(o[:300], d[:300]))),
     "intersect": lambda: digest(*(lambda h: (h.t, h.prim, h.u, h.v))(shared.intersect(o, d))),
     "intersect moller+counters": lambda: digest(*(lambda h: (h.t, h.prim, h.nodes_visited))(
         shared.intersect(o, d, triangle_test="moller", counters=True))),

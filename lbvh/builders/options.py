@@ -28,6 +28,7 @@ import numpy as np
 
 from .cost import C_NODE, C_TRI, MAX_LEAF_SIZE, check_sah_constants
 from .morton import AUTO_DUPLICATE_FRACTION
+from .ray_sampled import as_ray_sample
 from .restructure import check_rounds
 
 #: ``key_bits`` as the caller gives it -> bits of a key (``None``: chosen per mesh).
@@ -72,13 +73,34 @@ class SAHOptions:
     """The serial SAH reference: cost of a node visit ``c_node`` (default
     :data:`~lbvh.builders.cost.C_NODE`), of a triangle test ``c_tri``
     (:data:`~lbvh.builders.cost.C_TRI`), largest leaf ``max_leaf_size``
-    (:data:`~lbvh.builders.cost.MAX_LEAF_SIZE`; bigger nodes are always split)."""
+    (:data:`~lbvh.builders.cost.MAX_LEAF_SIZE`; bigger nodes are always split).
+
+    ``rays`` (default ``None``: the SAH's areas): a sample of the rays the tree
+    will trace, a :class:`~lbvh.builders.ray_sampled.RaySample` or an ``(origins,
+    directions)`` pair; splits are then costed by the fraction of those rays
+    that enter each side (Nabata et al. 2013, :mod:`lbvh.builders.ray_sampled`),
+    smoothed towards the area ratio by ``ray_prior`` pseudo-rays (default 16),
+    over ``ray_candidates`` evenly spaced candidates per axis (default 32) in
+    nodes that sample rays enter. ``lbvh.build`` ends each ray at its closest
+    hit in the mesh's default LBVH first (its time is in the build's)."""
     c_node: float = C_NODE
     c_tri: float = C_TRI
     max_leaf_size: int = MAX_LEAF_SIZE
+    rays: Any = None
+    ray_prior: float = 16.0
+    ray_candidates: int = 32
 
     def __post_init__(self) -> None:
         check_sah_constants(self.c_node, self.c_tri, self.max_leaf_size)
+        object.__setattr__(self, "rays", as_ray_sample(self.rays))
+        if isinstance(self.ray_prior, bool) or not isinstance(self.ray_prior, (int, float)) \
+                or not 0 < self.ray_prior < np.inf:
+            raise ValueError(f"ray_prior: {self.ray_prior!r}; expected a finite number > 0")
+        if isinstance(self.ray_candidates, bool) \
+                or not isinstance(self.ray_candidates, (int, np.integer)) \
+                or not 1 <= self.ray_candidates <= 1 << 16:
+            raise ValueError(f"ray_candidates: {self.ray_candidates!r}; expected an integer "
+                             "in [1, 65536]")
 
 
 @dataclass(frozen=True)

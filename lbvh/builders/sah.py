@@ -48,6 +48,7 @@ from .cost import C_NODE, C_TRI, MAX_LEAF_SIZE, box_area
 from ..progress import bar as progress_bar
 from ..report import BuildReport
 from .bounds import triangle_boxes_numpy
+from .ray_sampled import RayLists, RaySample
 
 
 #: Meshes from this size on show a progress bar by default (a few seconds of build).
@@ -95,8 +96,11 @@ class _Sweep:
 
 
 def _sweep(order: np.ndarray, lo_key: np.ndarray, hi_key: np.ndarray,
-           seg_start: np.ndarray, seg_count: np.ndarray) -> _Sweep:
-    """Cost every split candidate of every segment (all ``seg_count >= 2``), keep the best."""
+           seg_start: np.ndarray, seg_count: np.ndarray, rays: RayLists | None = None) -> _Sweep:
+    """Cost every split candidate of every segment (all ``seg_count >= 2``), keep the best.
+
+    With ``rays`` (the segments' sample rays), the sides' areas are replaced by their
+    ray-sampled effective areas (:meth:`lbvh.builders.ray_sampled.RayLists.weigh`)."""
     nseg = len(seg_start)
     offsets = np.cumsum(seg_count) - seg_count
     m = int(seg_count.sum())
@@ -121,11 +125,18 @@ def _sweep(order: np.ndarray, lo_key: np.ndarray, hi_key: np.ndarray,
         if a == 0:
             last = offsets + seg_count - 1
             box_lo, box_hi = _from_keys(pre_lo[last]), _from_keys(pre_hi[last])
-        pre_area = box_area(_from_keys(pre_lo), _from_keys(pre_hi))
-        suf_area = box_area(_from_keys(suf_lo), _from_keys(suf_hi))
+        pre_box = _from_keys(pre_lo), _from_keys(pre_hi)
+        suf_box = _from_keys(suf_lo), _from_keys(suf_hi)
+        pre_area = box_area(*pre_box)
+        suf_area = box_area(*suf_box)
         right_area = np.empty(m)
         right_area[:-1] = suf_area[1:]  # the right side of "split after i" starts at i + 1
         right_area[-1] = 0.0
+        if rays is not None:
+            right_box = [np.roll(b, -1, axis=0) for b in suf_box]   # the last is never costed
+            pre_area, right_area = rays.weigh(box_lo, box_hi, box_area(box_lo, box_hi), seg_of,
+                                              local, seg_count, (*pre_box, pre_area),
+                                              (*right_box, right_area))
         costs[a] = np.where(num_right > 0, pre_area * num_left + right_area * num_right, np.inf)
     best = np.minimum.reduceat(costs.min(axis=0), offsets)
     # ties: most balanced, then lowest axis, then smallest left side
@@ -197,7 +208,8 @@ def _stable_partition(order: np.ndarray, sweep: _Sweep, split_seg: np.ndarray,
 
 
 def sah_tree(lo: np.ndarray, hi: np.ndarray, c_node: float = C_NODE, c_tri: float = C_TRI,
-             max_leaf_size: int = MAX_LEAF_SIZE, progress: Any = None
+             max_leaf_size: int = MAX_LEAF_SIZE, progress: Any = None,
+             rays: RaySample | None = None, ray_prior: float = 16.0, ray_candidates: int = 32
              ) -> tuple[np.ndarray, np.ndarray]:
     """Build the SAH tree over primitive boxes.
 
@@ -205,6 +217,9 @@ def sah_tree(lo: np.ndarray, hi: np.ndarray, c_node: float = C_NODE, c_tri: floa
         lo, hi: ``float32 (F, 3)`` primitive boxes, ``F >= 1``.
         progress: a bar (:func:`lbvh.progress.bar`) advanced by the primitives
             placed in leaves, level by level; or None.
+        rays: a traced :class:`~lbvh.builders.ray_sampled.RaySample`: split
+            probabilities from these rays (:mod:`lbvh.builders.ray_sampled`, with
+            ``ray_prior`` and ``ray_candidates``) instead of areas; None: the SAH.
 
     Returns:
         ``nodes`` (``NODE_DTYPE``, root 0, numbered level by level) and
@@ -218,6 +233,7 @@ def sah_tree(lo: np.ndarray, hi: np.ndarray, c_node: float = C_NODE, c_tri: floa
     nodes = np.zeros(2 * num_prims - 1, NODE_DTYPE)
     is_left = np.zeros(num_prims, bool)
     start, count, ids = np.array([0]), np.array([num_prims]), np.array([0])
+    lists = None if rays is None else RayLists(rays, ray_prior, ray_candidates)
     next_id = 1
     while len(start):
         single = count == 1
@@ -227,9 +243,11 @@ def sah_tree(lo: np.ndarray, hi: np.ndarray, c_node: float = C_NODE, c_tri: floa
             if progress is not None:
                 progress.update(int(single.sum()))
         start, count, ids = start[~single], count[~single], ids[~single]
+        if lists is not None:
+            lists.keep(~single)
         if not len(start):
             break
-        sweep = _sweep(order, lo_key, hi_key, start, count)
+        sweep = _sweep(order, lo_key, hi_key, start, count, lists)
         split_cost = c_node * sweep.area + c_tri * sweep.cost_sum
         leaf_cost = c_tri * count * sweep.area
         leaf = (count <= max_leaf_size) & (split_cost >= leaf_cost)
@@ -244,6 +262,8 @@ def sah_tree(lo: np.ndarray, hi: np.ndarray, c_node: float = C_NODE, c_tri: floa
         nodes["lower"][at], nodes["upper"][at] = sweep.box_lo[split], sweep.box_hi[split]
         nodes["a"][at], nodes["b"][at] = left_ids, left_ids + 1
         _stable_partition(order, sweep, split, is_left)
+        if lists is not None:
+            lists.split(split)
         k = sweep.num_left[split]
         start = np.stack([start[split], start[split] + k], axis=1).ravel()
         count = np.stack([k, count[split] - k], axis=1).ravel()
@@ -273,7 +293,8 @@ def build_tree(ctx: dev.Context, mesh: Mesh, options: SAHOptions = SAHOptions(),
         progress = False
     with progress_bar(mesh.num_prims, "SAH build", "tri", progress) as placed:
         nodes, prim_order = sah_tree(lo, hi, float(options.c_node), float(options.c_tri),
-                                     int(options.max_leaf_size), placed)
+                                     int(options.max_leaf_size), placed, options.rays,
+                                     float(options.ray_prior), int(options.ray_candidates))
     wall = time.perf_counter() - t0
     report = BuildReport(device=ctx.name, builder="sah", num_triangles=mesh.num_prims,
                          wall_seconds=wall, input_bytes=mesh.vertices.nbytes + mesh.faces.nbytes)
