@@ -46,7 +46,8 @@ Builders: the device LBVH with 30-bit, 63-bit and automatic Morton keys, each
 without and with the SAH leaf collapse (``max_leaf_size`` 8), automatic keys
 with treelet restructuring (without and with the collapse), the host top-down
 median and midpoint splits (``lbvh/builders/topdown.py``, leaves of one
-triangle), the serial SAH reference, and as peers when installed Embree (embreex) and warp-lang's CPU
+triangle), the serial SAH reference and the SAH reference costed by a 64x48 grid of
+the scene camera's rays (``sah+rays``, :mod:`lbvh.builders.ray_sampled`), and as peers when installed Embree (embreex) and warp-lang's CPU
 mesh constructors. The peers' trees are not visible: they get a build time, a
 render time through their own traversal, and hit agreement, no tree figures
 (and no place in the correlation or traversal-order tables).
@@ -85,6 +86,7 @@ import numpy as np
 import lbvh
 from lbvh import device as dev
 from lbvh.builders.cost import C_NODE, C_TRI, MAX_LEAF_SIZE
+from lbvh.rendering.camera import frame_bounds
 from lbvh.queries.traverse import intersect
 from lbvh.verification import meshes
 from lbvh.verification.error_bound import t_bound
@@ -138,12 +140,33 @@ def our_variants() -> list[Variant]:
         out.append(Variant(rule, "topdown", {"builder": rule}))
     out.append(Variant("sbvh", "sbvh", {"builder": "sbvh", **SAH_OPTIONS}))
     out.append(Variant(REFERENCE, "sah", {"builder": "sah", **SAH_OPTIONS}))
+    out.append(Variant(f"{REFERENCE}+rays", "sah", {"builder": "sah", **SAH_OPTIONS,
+                                                    "camera_sample": CAMERA_SAMPLE}))
     return out
 
 
-def build_tree(variant: Variant, vertices: np.ndarray, faces: np.ndarray, ctx: dev.Context) -> lbvh.BVH:
-    """Build one of our trees on ``ctx``."""
-    return lbvh.build(vertices, faces, device=ctx, **variant.options)
+#: The ray-sampled SAH's sample: a grid of this many of the bench camera's rays
+#: (``camera.resized(64, 48)``: 1/64 of the render's 512x384, not the same rays).
+CAMERA_SAMPLE = (64, 48)
+
+
+def build_options(options: dict, camera: Any) -> dict:
+    """``lbvh.build``'s keywords of a variant: ``camera_sample=(w, h)`` becomes
+    ``rays``, a ``w x h`` grid of ``camera``'s rays (the ray-sampled SAH)."""
+    if "camera_sample" not in options:
+        return options
+    out = {k: v for k, v in options.items() if k != "camera_sample"}
+    out["rays"] = camera.resized(*options["camera_sample"]).rays()
+    return out
+
+
+def build_tree(variant: Variant, vertices: np.ndarray, faces: np.ndarray, ctx: dev.Context,
+               camera: Any = None) -> lbvh.BVH:
+    """Build one of our trees on ``ctx`` (``camera``: the view a ray-sampled tree is for;
+    default, one framing the mesh)."""
+    if camera is None:
+        camera = frame_bounds(vertices.min(axis=0), vertices.max(axis=0))
+    return lbvh.build(vertices, faces, device=ctx, **build_options(variant.options, camera))
 
 
 # -- measuring the builders of one scene ---------------------------------------------
@@ -193,8 +216,9 @@ class Contestant:
     def run_build(self, scene: Scene) -> None:
         self.handle = None                       # one tree per builder alive at a time
         c0 = time.process_time()
-        setup, seconds, self.handle = self.builder.build(scene.vertices, scene.faces,
-                                                       **self.variant.options)
+        options = build_options(self.variant.options, scene.camera) if ours(self.variant) \
+            else self.variant.options
+        setup, seconds, self.handle = self.builder.build(scene.vertices, scene.faces, **options)
         self.build_cpu.append(time.process_time() - c0)
         self.setup.append(setup)
         self.build.append(seconds)
@@ -712,7 +736,7 @@ PEER_LINES = ("-", "--", ":", "-.", (0, (5, 1, 1, 1)))
 
 #: Colour and marker of the builders that are not LBVH variants.
 HOST_STYLES = {"median": ("C5", "^"), "midpoint": ("C6", "v"), "sbvh": ("C9", "P"),
-               REFERENCE: ("C3", "*")}
+               REFERENCE: ("C3", "*"), f"{REFERENCE}+rays": ("C4", "*")}
 
 
 def point_style(name: str, family: str) -> dict:

@@ -21,9 +21,12 @@ that idea inside the SAH reference's sweep (:mod:`lbvh.builders.sah`):
   in the SAH's units (``P(N | N) = 1``);
 * a node that no sample ray enters is split by the full-sweep SAH, exactly as
   without rays; in a node that some enter, counting every candidate would cost
-  ``n * r`` slab tests, so only ``ray_candidates`` evenly spaced candidates of
-  each axis order are costed (all of them in a node of that many primitives or
-  fewer), with the prefix and suffix boxes of the full sweep (exact, not binned).
+  ``n * r`` slab tests, so ``ray_candidates`` of each axis order are costed:
+  half evenly spaced (every ``ceil(n / (ray_candidates / 2))``-th), half the
+  cheapest by the SAH's area cost (ties: the smaller left side), so the SAH's own
+  choice is always among them; with the prefix and suffix boxes of the full
+  sweep (exact, not binned). Evenly spaced alone missed the splits that cut a
+  few large triangles off (Conference's SAH cost went from 34 to 50).
 
 :class:`RaySample` holds the rays; :class:`RayLists` the sample rays of the
 open nodes of a level of the build and the probabilities of their candidates.
@@ -197,9 +200,21 @@ class RayLists:
         if not self.filtered:
             self._filter(box_lo, box_hi)
         rays = self.count[seg_of]
-        step = np.maximum(1, -(-seg_count // self.candidates))[seg_of]
         inside = local + 1 < seg_count[seg_of]          # the right side is not empty
+        spaced = -(-self.candidates // 2)
+        step = np.maximum(1, -(-seg_count // spaced))[seg_of]
         costed = (rays > 0) & ((local + 1) % step == 0) & inside
+        # and the node's cheapest candidates by area (the SAH's own choice among them)
+        open_ = np.flatnonzero((rays > 0) & inside)      # in order of node, then place
+        sub = seg_of[open_]
+        area_cost = pre[2][open_] * (local[open_] + 1) + right[2][open_] * (
+            seg_count[sub] - local[open_] - 1)
+        order = np.lexsort((area_cost, sub))            # by node, then cost, then place
+        sizes = np.bincount(sub, minlength=len(seg_count))
+        first = (np.cumsum(sizes) - sizes)[sub[order]]
+        rank = np.empty(len(order), np.int64)
+        rank[order] = np.arange(len(order)) - first
+        costed[open_[rank < self.candidates // 2]] = True
         left, right_area = pre[2].copy(), right[2].copy()
         left[(rays > 0) & inside] = np.inf
         right_area[(rays > 0) & inside] = np.inf

@@ -52,12 +52,17 @@ def twin(lo, hi, sample, prior, candidates, max_leaf, c_node=1.0, c_tri=1.0):
             return
         rays = rays[_enters(o[rays], inv[rays], tmax[rays], box_lo, box_hi)]
         r, a_n = len(rays), _area(box_lo, box_hi)
-        step = max(1, -(-n // candidates))
+        step = max(1, -(-n // -(-candidates // 2)))
         best = None
         for axis in range(3):
             order = sorted(prims, key=lambda p: (float(centre[p, axis]), p))
+
+            def area_cost(k):
+                return (_area(lo[order[:k]].min(axis=0), hi[order[:k]].max(axis=0)) * k
+                        + _area(lo[order[k:]].min(axis=0), hi[order[k:]].max(axis=0)) * (n - k))
+            cheapest = sorted(range(1, n), key=lambda k: (area_cost(k), k))[:candidates // 2]
             for k in range(1, n):
-                if r and k % step:
+                if r and k % step and k not in cheapest:
                     continue
                 sides = []
                 for part in (order[:k], order[k:]):
@@ -124,7 +129,7 @@ def _case(seed):
 def test_the_tree_is_the_twins_node_for_node(seed):
     lo, hi, sample, rng = _case(seed)
     prior = float(rng.choice([0.5, 4.0, 16.0]))
-    candidates = int(rng.choice([3, 8, 32]))
+    candidates = int(rng.choice([2, 3, 8, 32]))
     max_leaf = int(rng.choice([1, 4, 8]))
     nodes, prim_order = sah_tree(lo, hi, max_leaf_size=max_leaf, rays=sample, ray_prior=prior,
                                  ray_candidates=candidates)
@@ -196,7 +201,7 @@ def test_bad_samples_are_value_errors(rays, match):
 
 @pytest.mark.parametrize("options, match", [({"ray_prior": 0}, "ray_prior: 0"),
                                             ({"ray_prior": float("inf")}, "ray_prior"),
-                                            ({"ray_candidates": 0}, "ray_candidates: 0"),
+                                            ({"ray_candidates": 1}, "ray_candidates: 1"),
                                             ({"ray_candidates": 2.5}, "ray_candidates")])
 def test_bad_ray_options_are_value_errors(options, match):
     with pytest.raises(ValueError, match=match):
