@@ -49,6 +49,21 @@ inline long hit_slot(long first, int cap, int found, float t, int inst, int prim
                ? far : -1;
 }
 
+/* A step of the walk at an internal node whose children are a and b: the child
+ * to enter next, -1 for none; b pushed when both are entered (a full stack sets
+ * FLAG_OVERFLOW and skips it). */
+inline int enter_children(__global const float4 *nodes, int a, int b, const Ray *ray, int *stack,
+                          int *top, int *flag) {
+    float ea, eb, leave;
+    const int in_a = slab((__global const float *)(nodes + 2 * a), ray, ray->tmax, &ea, &leave);
+    const int in_b = slab((__global const float *)(nodes + 2 * b), ray, ray->tmax, &eb, &leave);
+    if (in_a && in_b) {
+        if (*top < STACK_SIZE) stack[(*top)++] = b;
+        else *flag |= FLAG_OVERFLOW;
+    }
+    return in_a ? a : (in_b ? b : -1);
+}
+
 /* Every hit of *ray in the tree at `root` (of `num_nodes` nodes): *found counts
  * them; with COUNT=0 they are kept in [first, first + cap) (hit_slot), t along
  * the direction *ray was made from (make_ray's scaling undone), the triangle in
@@ -104,16 +119,7 @@ inline void tree_hits(__global const float4 *nodes, __global const int *prim_ord
                 }
                 node = -1;
             } else {
-                float ea, eb;
-                const int in_a = slab((__global const float *)(nodes + 2 * a), ray, ray->tmax,
-                                      &ea, &leave);
-                const int in_b = slab((__global const float *)(nodes + 2 * b), ray, ray->tmax,
-                                      &eb, &leave);
-                if (in_a && in_b) {
-                    if (top < STACK_SIZE) stack[top++] = b;
-                    else *flag |= FLAG_OVERFLOW;
-                }
-                node = in_a ? a : (in_b ? b : -1);
+                node = enter_children(nodes, a, b, ray, stack, &top, flag);
             }
             continue;
         }
