@@ -27,20 +27,14 @@
  *   SLAB_PAD, NO_FP64: kernels/ray_triangle.h.
  */
 #include "common.h"
+#include "every_hit.h"
 
-#ifndef STACK_SIZE
-#define STACK_SIZE 64
-#endif
-#ifndef COUNT
-#define COUNT 1
-#endif
 #ifndef COUNTERS
 #define COUNTERS 0
 #endif
 #if COUNTERS && !COUNT
 #error "COUNTERS goes with the counting pass"
 #endif
-#include "every_hit.h"
 
 __kernel void all_hits(__global const float4 *nodes, __global const int *prim_order,
                        __global const float *vertices, __global const uint *slot_faces,
@@ -56,13 +50,8 @@ __kernel void all_hits(__global const float4 *nodes, __global const int *prim_or
     Ray ray;
     make_ray(&ray, origins + 3 * i, directions + 3 * i, tmins[i * interval_stride],
              tmaxs[i * interval_stride]);
-#if COUNT
-    const long first = 0;   /* nothing kept: only counted */
-    const int cap = 0;
-#else
-    const long first = offsets[i];
-    const int cap = (int)(offsets[i + 1] - first);
-#endif
+    long first;
+    const int cap = kept_slots(offsets, i, &first);
     int found = 0, flag = 0;
     const int nan_ray = ray.ox != ray.ox || ray.oy != ray.oy || ray.oz != ray.oz ||
                         ray.dx != ray.dx || ray.dy != ray.dy || ray.dz != ray.dz ||

@@ -9,12 +9,19 @@
  * vertex counts once). A hit counts only where the ray enters the triangle's
  * own box (accept_hit), so the set of hits does not depend on the tree.
  *
- * The includer defines STACK_SIZE and COUNT (see all_hits.cl) and may define
- * HIT_INSTANCE=1: each kept hit then carries an instance index too, and hits
- * of equal t are ordered by instance before triangle.
+ * Defines (-D): STACK_SIZE and COUNT, as all_hits.cl documents them. The
+ * includer may define HIT_INSTANCE=1: each kept hit then carries an instance
+ * index too, and hits of equal t are ordered by instance before triangle.
  */
 #ifndef LBVH_EVERY_HIT_H
 #define LBVH_EVERY_HIT_H
+
+#ifndef STACK_SIZE
+#define STACK_SIZE 64
+#endif
+#ifndef COUNT
+#define COUNT 1
+#endif
 
 #if defined(TRIANGLE_TEST) && TRIANGLE_TEST != 0
 #error "every hit is counted with the watertight test only"
@@ -62,6 +69,18 @@ inline int enter_children(__global const float4 *nodes, int a, int b, const Ray 
         else *flag |= FLAG_OVERFLOW;
     }
     return in_a ? a : (in_b ? b : -1);
+}
+
+/* The slots of ray i's kept hits: returns how many, from *first (offsets: the
+ * host's prefix sum of the capped counts); none in the counting pass. */
+inline int kept_slots(__global const long *offsets, int i, long *first) {
+#if COUNT
+    *first = 0;
+    return 0;
+#else
+    *first = offsets[i];
+    return (int)(offsets[i + 1] - offsets[i]);
+#endif
 }
 
 /* Every hit of *ray in the tree at `root` (of `num_nodes` nodes): *found counts

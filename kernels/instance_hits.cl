@@ -28,12 +28,6 @@
  */
 #include "common.h"
 
-#ifndef STACK_SIZE
-#define STACK_SIZE 64
-#endif
-#ifndef COUNT
-#define COUNT 1
-#endif
 #define HIT_INSTANCE 1
 #include "every_hit.h"
 #include "instance_ray.h"
@@ -56,13 +50,8 @@ __kernel void instance_hits(__global const float4 *top_nodes, __global const int
     const float tmin = tmins[i * interval_stride], tmax = tmaxs[i * interval_stride];
     float w[6];
     const int nan_ray = world_ray(origins, directions, i, tmin, tmax, w);
-#if COUNT
-    const long first = 0;   /* nothing kept: only counted */
-    const int cap = 0;
-#else
-    const long first = offsets[i];
-    const int cap = (int)(offsets[i + 1] - first);
-#endif
+    long first;
+    const int cap = kept_slots(offsets, i, &first);
     int found = 0, flag = nan_ray ? FLAG_NAN_RAY : 0, visits = 0, leaves = 0, tested = 0;
     Ray ray;   /* the world ray, for the top level's boxes */
     make_ray(&ray, origins + 3 * i, directions + 3 * i, tmin, tmax);
