@@ -1,14 +1,13 @@
 /* Every hit along each ray, and the hit counts (lbvh/queries/all_hits.py).
  *
- * A depth-first traversal of the binary nodes (docs/layout.md) enters every
- * node whose box the ray's [tmin, tmax] enters, by the slab test of
- * kernels/ray_triangle.h, and tests every triangle of every such leaf with
- * the watertight test (Woop, Benthin, Wald 2013) under EDGE_RULE: a ray
- * through an edge or a vertex shared by several triangles hits exactly one of
- * them where it crosses the surface (simulation of simplicity, see
- * ray_triangle.h), so a crossing counts once. A hit counts only where the ray
- * enters the triangle's own box (accept_hit), so the set of hits does not
- * depend on the tree: every node holding such a triangle holds its box.
+ * Per ray, the walk of kernels/every_hit.h: a depth-first traversal of every
+ * node whose box the ray's [tmin, tmax] enters, every triangle of every such
+ * leaf tested with the watertight test (Woop, Benthin, Wald 2013) under
+ * EDGE_RULE: a ray through an edge or a vertex shared by several triangles
+ * hits exactly one of them where it crosses the surface (simulation of
+ * simplicity, see ray_triangle.h), so a crossing counts once. A hit counts
+ * only where the ray enters the triangle's own box (accept_hit), so the set
+ * of hits does not depend on the tree.
  *
  * Two passes over the same traversal: COUNT=1 writes how many hits each ray
  * has in [tmin, tmax]; COUNT=0 writes them into [offsets[i], offsets[i + 1])
@@ -28,28 +27,14 @@
  *   SLAB_PAD, NO_FP64: kernels/ray_triangle.h.
  */
 #include "common.h"
+#include "every_hit.h"
 
-#ifndef STACK_SIZE
-#define STACK_SIZE 64
-#endif
-#ifndef COUNT
-#define COUNT 1
-#endif
 #ifndef COUNTERS
 #define COUNTERS 0
 #endif
 #if COUNTERS && !COUNT
 #error "COUNTERS goes with the counting pass"
 #endif
-#if defined(TRIANGLE_TEST) && TRIANGLE_TEST != 0
-#error "all_hits.cl counts crossings with the watertight test only"
-#endif
-#define EDGE_RULE 1
-
-#include "ray_triangle.h"
-
-/* (t, prim) ordering: nearer first, then the lower triangle index. */
-inline int before(float ta, int pa, float tb, int pb) { return ta < tb || (ta == tb && pa < pb); }
 
 __kernel void all_hits(__global const float4 *nodes, __global const int *prim_order,
                        __global const float *vertices, __global const uint *slot_faces,
@@ -65,78 +50,18 @@ __kernel void all_hits(__global const float4 *nodes, __global const int *prim_or
     Ray ray;
     make_ray(&ray, origins + 3 * i, directions + 3 * i, tmins[i * interval_stride],
              tmaxs[i * interval_stride]);
-#if !COUNT
-    const long first = offsets[i];
-    const int cap = (int)(offsets[i + 1] - first);
-#endif
+    long first;
+    const int cap = kept_slots(offsets, i, &first);
     int found = 0, flag = 0;
     const int nan_ray = ray.ox != ray.ox || ray.oy != ray.oy || ray.oz != ray.oz ||
                         ray.dx != ray.dx || ray.dy != ray.dy || ray.dz != ray.dz ||
                         ray.tmin != ray.tmin || ray.tmax != ray.tmax;   /* isnan */
     if (nan_ray) flag |= FLAG_NAN_RAY;
-    float entry, leave;
-    int node = !nan_ray && slab((__global const float *)(nodes + 2 * root), &ray, ray.tmax,
-                                &entry, &leave) ? root : -1;
-    int stack[STACK_SIZE];
-    int top = 0, visits = 0, leaves = 0, tested = 0;
-    for (;;) {
-        if (node >= 0) {
-            if (++visits > num_nodes) {
-                flag |= FLAG_VISIT_LIMIT;
-                break;
-            }
-            const int a = as_int(nodes[2 * node].w), b = as_int(nodes[2 * node + 1].w);
-            if (node_is_leaf(b)) {
-                ++leaves;
-                tested -= b;
-                for (int s = a; s < a - b; ++s) {
-                    float t = INFINITY, u = 0.0f, v = 0.0f;
-                    if (!hit_triangle(vertices, 3 * (int)slot_faces[3 * s],
-                                      3 * (int)slot_faces[3 * s + 1],
-                                      3 * (int)slot_faces[3 * s + 2], &ray, -1.0f, &t, &u, &v))
-                        continue;
-#if !COUNT
-                    /* t along d * 2^-texp (make_ray) back to d; + 0.0f: no -0.0 */
-                    if (ray.texp != 0) t = ldexp(t, -ray.texp);
-                    t += 0.0f;
-                    const int prim = prim_order[s];
-                    long slot = -1;
-                    if (found < cap) {
-                        slot = first + found;
-                    } else if (cap > 0) {
-                        /* full: replace the farthest kept hit if this one is nearer */
-                        long far = first;
-                        for (long k = first + 1; k < first + cap; ++k)
-                            if (before(out_t[far], out_prim[far], out_t[k], out_prim[k])) far = k;
-                        if (before(t, prim, out_t[far], out_prim[far])) slot = far;
-                    }
-                    if (slot >= 0) {
-                        out_t[slot] = t;
-                        out_u[slot] = u;
-                        out_v[slot] = v;
-                        out_prim[slot] = prim;
-                    }
-#endif
-                    ++found;
-                }
-                node = -1;
-            } else {
-                float ea, eb;
-                const int in_a = slab((__global const float *)(nodes + 2 * a), &ray, ray.tmax,
-                                      &ea, &leave);
-                const int in_b = slab((__global const float *)(nodes + 2 * b), &ray, ray.tmax,
-                                      &eb, &leave);
-                if (in_a && in_b) {
-                    if (top < STACK_SIZE) stack[top++] = b;
-                    else flag |= FLAG_OVERFLOW;
-                }
-                node = in_a ? a : (in_b ? b : -1);
-            }
-            continue;
-        }
-        if (top == 0) break;
-        node = stack[--top];
-    }
+    int visits = 0, leaves = 0, tested = 0;
+    if (!nan_ray)
+        tree_hits(nodes, prim_order, vertices, slot_faces, root, num_nodes, &ray, 0, first, cap,
+                  out_t, out_u, out_v, out_prim, out_prim, &found, &flag, &visits, &leaves,
+                  &tested);
 #if COUNT
     counts[i] = found;
 #endif

@@ -47,6 +47,7 @@
 #endif
 
 #include "ray_triangle.h"
+#include "instance_ray.h"
 
 /* One ordered step: of node x's two children, whether the ray enters them
  * before `limit`, the nearer first (equal entries: the nearer exit; equal
@@ -154,14 +155,11 @@ __kernel void trace_instances(__global const float4 *top_nodes, __global const i
     Ray ray;
     make_ray(&ray, origins + 3 * i, directions + 3 * i, tmins[i * interval_stride],
              tmaxs[i * interval_stride]);
-    /* the world ray as given (make_ray may have scaled its copy) */
-    const float ox = origins[3 * i], oy = origins[3 * i + 1], oz = origins[3 * i + 2];
-    const float dx = directions[3 * i], dy = directions[3 * i + 1], dz = directions[3 * i + 2];
     const float tmin = tmins[i * interval_stride], tmax = tmaxs[i * interval_stride];
+    float w[6];   /* the world ray as given (make_ray may have scaled its copy) */
+    const int nan_ray = world_ray(origins, directions, i, tmin, tmax, w);
     float best = INFINITY, bu = 0.0f, bv = 0.0f;   /* best: world t along d as given */
     int best_slot = -1, best_inst = -1, flag = 0, visited = 1, tested = 0;
-    const int nan_ray = ox != ox || oy != oy || oz != oz || dx != dx || dy != dy || dz != dz ||
-                        tmin != tmin || tmax != tmax;   /* isnan */
     if (nan_ray) flag |= FLAG_NAN_RAY;
     int stack[STACK_SIZE];
     float stack_entry[STACK_SIZE];
@@ -181,28 +179,9 @@ __kernel void trace_instances(__global const float4 *top_nodes, __global const i
         if (node_is_leaf(b)) {
             for (int s = a; s < a - b; ++s) {
                 const int inst = top_order[s];
-                __global const float *m = inverse + 12 * inst;
                 Ray moved;
-                /* the identity (parts of one mesh) moves nothing, not even the sign of a zero */
-                const int identity = m[0] == 1.0f && m[1] == 0.0f && m[2] == 0.0f &&
-                                     m[3] == 0.0f && m[4] == 1.0f && m[5] == 0.0f &&
-                                     m[6] == 0.0f && m[7] == 0.0f && m[8] == 1.0f &&
-                                     m[9] == 0.0f && m[10] == 0.0f && m[11] == 0.0f;
-                if (identity) {
-                    moved.ox = ox; moved.oy = oy; moved.oz = oz;
-                    moved.dx = dx; moved.dy = dy; moved.dz = dz;
-                } else {
-                    moved.ox = m[0] * ox + m[1] * oy + m[2] * oz + m[9];
-                    moved.oy = m[3] * ox + m[4] * oy + m[5] * oz + m[10];
-                    moved.oz = m[6] * ox + m[7] * oy + m[8] * oz + m[11];
-                    moved.dx = m[0] * dx + m[1] * dy + m[2] * dz;
-                    moved.dy = m[3] * dx + m[4] * dy + m[5] * dz;
-                    moved.dz = m[6] * dx + m[7] * dy + m[8] * dz;
-                }
-                moved.tmin = tmin;
-                moved.tmax = min_keep(best, tmax);
-                if (moved.dx == 0.0f && moved.dy == 0.0f && moved.dz == 0.0f) continue;
-                prepare_ray(&moved);
+                if (!move_ray(inverse + 12 * inst, w, tmin, min_keep(best, tmax), &moved))
+                    continue;
                 float t, u, v;
                 int slot = -1;
                 if (trace_mesh(nodes, vertices, slot_faces, inst_root[inst], num_nodes, &moved, &t,

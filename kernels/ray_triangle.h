@@ -1,7 +1,8 @@
 /* One ray against boxes and triangles: the ray's constants, the slab test of a
  * box and the watertight triangle test, shared by the ray queries
  * (kernels/traverse.cl: closest and any hit; kernels/all_hits.cl: every hit
- * and the hit counts).
+ * and the hit counts; kernels/instances.cl and kernels/instance_hits.cl: the
+ * same through a scene of instances).
  *
  * Compile-time choices (-D), all optional:
  *   TRIANGLE_TEST=0  watertight test of Woop, Benthin, Wald 2013 (default)

@@ -4,8 +4,10 @@
 the build report of its BVH; ``lbvh devices`` lists the OpenCL devices;
 ``lbvh query KIND SCENE INPUT`` answers a point query (``closest``,
 ``signed-distance``, ``contains``) or a ray query (``count-hits``, ``all-hits``)
-for every point or ray of a file; ``lbvh check`` runs the hard-case suite (:mod:`lbvh.verification.check`) and exits 1 if a
-case fails; ``lbvh --version`` prints the version.
+for every point or ray of a file (through the instances of a file that places
+several meshes, naming the instance of each answer); ``lbvh check`` runs the
+hard-case suite (:mod:`lbvh.verification.check`) and exits 1 if a case fails;
+``lbvh --version`` prints the version.
 
 Where a command takes a scene it also takes the name of a mesh that ships with
 the package (``lbvh render teapot -o teapot.png``, :mod:`lbvh.data`); a file of
@@ -39,7 +41,7 @@ from .rendering.camera import (DEFAULT_FOV, DEFAULT_SIZE, MAX_SIDE, Camera, fram
                                views_name)
 from .rendering.image import image_kind
 from .rendering.render import AO_SAMPLES, MODES, check_mode, render
-from .rendering.scene import Scene, find_scene, load_scene, placed_geometries
+from .rendering.scene import Scene, find_scene, load_scene
 from .scene import Scene as LbvhScene
 from .verification import selftest
 from .verification.check import add_arguments as add_check_arguments
@@ -166,17 +168,6 @@ def _build(scene, args: argparse.Namespace, **extra: Any):
                  treelet_rounds=args.treelets, key_bits=args.keys, device=args.device, **extra)
 
 
-def _one_mesh(scene, what: str) -> None:
-    """A clear error, before any build, where a command takes one mesh and the file
-    places several (``scene.extras["instances"]``, a ``trimesh.Scene``)."""
-    source = scene.extras.get("instances")
-    if source is not None:
-        placed = placed_geometries(source)
-        raise ValueError(f"{what}: the file places {len(placed)} instances of "
-                         f"{len(set(placed))} meshes; this command takes one mesh for now "
-                         "(flatten it, e.g. with trimesh's to_mesh())")
-
-
 def _scene_name(text: str) -> str:
     """The scene as typed, with the file read when it is a shipped mesh's name."""
     file = find_scene(text)
@@ -257,7 +248,8 @@ def _read_rays(path: str) -> tuple[np.ndarray, np.ndarray]:
     return rows[:, :3], rows[:, 3:]
 
 
-#: ``lbvh query`` kinds: what each reads, and the arrays it writes.
+#: ``lbvh query`` kinds: what each reads, and the arrays it writes for one mesh (a file of
+#: placed meshes adds ``instance``; its closest points have no ``u, v``).
 QUERY_KINDS = {
     "closest": ("points", "distance, points, prim, u, v, found"),
     "signed-distance": ("points", "signed_distance"),
@@ -275,18 +267,29 @@ def _stats(name: str, values: np.ndarray) -> dict[str, float | None]:
 
 def _run_query(bvh: Any, kind: str, data: Any, args: argparse.Namespace
                ) -> tuple[dict[str, np.ndarray], dict[str, Any], list[str]]:
-    """The query's arrays (for OUT.npz), its summary fields and its summary lines."""
+    """The query's arrays (for OUT.npz), its summary fields and its summary lines. A
+    file of placed meshes is asked through its :class:`lbvh.Scene` (the instance of each
+    answer in an ``instance`` array; what a scene refuses, e.g. closest points under a
+    shear, is refused with the scene's message)."""
+    scene = isinstance(bvh, LbvhScene)
     if kind == "closest":
-        got = bvh.closest_points(data, max_distance=args.max_distance)
-        found = got.distance[got.found]
-        summary = {"found": int(got.found.sum()), **_stats("distance", found),
-                   "overflow": got.overflow_count}
+        if scene:
+            distance, points, instance, prim = bvh.closest_points(data,
+                                                                  max_distance=args.max_distance)
+            arrays = {"distance": distance, "points": points, "prim": prim, "instance": instance,
+                      "found": instance >= 0}
+        else:
+            got = bvh.closest_points(data, max_distance=args.max_distance)
+            arrays = {"distance": got.distance, "points": got.points, "prim": got.prim,
+                      "u": got.u, "v": got.v, "found": got.found}
+        found = arrays["distance"][arrays["found"]]
+        summary = {"found": int(arrays["found"].sum()), **_stats("distance", found),
+                   **({} if scene else {"overflow": got.overflow_count})}
         lines = [f"found:     {summary['found']:,} with a triangle within {args.max_distance:g}"]
         if len(found):
             lines.append(f"distance:  min {summary['distance_min']:.6g}, median "
                          f"{summary['distance_median']:.6g}, max {summary['distance_max']:.6g}")
-        return ({"distance": got.distance, "points": got.points, "prim": got.prim, "u": got.u,
-                 "v": got.v, "found": got.found}, summary, lines)
+        return arrays, summary, lines
     if kind == "signed-distance":
         sd = bvh.signed_distance(data)
         summary = {"inside": int((sd < 0).sum()), **_stats("signed_distance", sd)}
@@ -312,24 +315,29 @@ def _run_query(bvh: Any, kind: str, data: Any, args: argparse.Namespace
     got = bvh.all_hits(origins, directions, max_hits=args.max_hits)
     summary = {"hits": len(got.t), "rays_hit": int((got.total > 0).sum()),
                "truncated": int(got.truncated.sum())}
-    return ({"offsets": got.offsets, "t": got.t, "prim": got.prim, "u": got.u, "v": got.v,
-             "total": got.total}, summary,
-            [f"hits:      {summary['hits']:,} kept; {summary['rays_hit']:,} rays hit"
-             + (f", {summary['truncated']:,} past --max-hits" if summary["truncated"] else "")])
+    lines = [f"hits:      {summary['hits']:,} kept; {summary['rays_hit']:,} rays hit"
+             + (f", {summary['truncated']:,} past --max-hits" if summary["truncated"] else "")]
+    arrays = {"offsets": got.offsets, "t": got.t, "prim": got.prim,
+              **({"instance": got.instance} if scene else {}), "u": got.u, "v": got.v,
+              "total": got.total}
+    if scene:
+        summary["instances_hit"] = int(len(np.unique(got.instance)))
+        lines.append(f"instances: {summary['instances_hit']:,} of {bvh.num_instances:,} hit")
+    return arrays, summary, lines
 
 
 def cmd_query(args: argparse.Namespace) -> int:
-    """``lbvh query KIND SCENE INPUT [-o OUT.npz]``: a point or ray query on the mesh;
-    a summary on stdout (or JSON), every answer in OUT.npz."""
+    """``lbvh query KIND SCENE INPUT [-o OUT.npz]``: a point or ray query on the mesh, or
+    through the instances of a file of placed meshes; a summary on stdout (or JSON),
+    every answer in OUT.npz."""
     if args.output is not None:
         folder = Path(args.output).resolve().parent
         if not folder.is_dir():
             raise ValueError(f"{args.output}: cannot write, the folder {folder} does not exist")
-    reads, writes = QUERY_KINDS[args.kind]
+    reads = QUERY_KINDS[args.kind][0]
     data = _read_points(args.input) if reads == "points" else _read_rays(args.input)
     scene = load_scene(args.scene)
-    _one_mesh(scene, f"query {args.kind}")
-    bvh = _build(scene, args)
+    bvh = _build(scene, args)   # a file of placed meshes: an lbvh.Scene of its instances
     start = time.perf_counter()
     arrays, fields, lines = _run_query(bvh, args.kind, data, args)
     seconds = time.perf_counter() - start
@@ -337,19 +345,22 @@ def cmd_query(args: argparse.Namespace) -> int:
     if args.output is not None:
         with open(args.output, "wb") as out:   # the name as given, no suffix added
             np.savez(out, **arrays)
-    summary = {"scene": _scene_name(args.scene), "query": args.kind, reads: count,
-               "seconds": seconds, **fields, "output": args.output}
+    summary = {"scene": _scene_name(args.scene), "query": args.kind,
+               **({"instances": bvh.num_instances} if isinstance(bvh, LbvhScene) else {}),
+               reads: count, "seconds": seconds, **fields, "output": args.output}
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        print(f"scene:     {summary['scene']}")
+        placed = (f": {bvh.num_instances} instances of {len(bvh.meshes)} meshes"
+                  if isinstance(bvh, LbvhScene) else "")
+        print(f"scene:     {summary['scene']}{placed}")
         print(f"{reads + ':':<10} {count:,} from {args.input}")
         for line in lines:
             print(line)
         print(f"query:     {seconds * 1e3:.1f} ms ({count / max(seconds, 1e-9) / 1e6:.2f} "
               f"M{reads}/s)")
         if args.output is not None:
-            print(f"wrote:     {args.output} ({writes})")
+            print(f"wrote:     {args.output} ({', '.join(arrays)})")
     return 0
 
 
@@ -498,7 +509,8 @@ def make_parser() -> argparse.ArgumentParser:
     _add_camera_options(p)
     _add_build_options(p)
     p.set_defaults(func=cmd_render)
-    p = sub.add_parser("query", help="point and ray queries on a scene's mesh")
+    p = sub.add_parser("query", help="point and ray queries on a scene's mesh, or through the "
+                                     "instances of a file of placed meshes")
     p.add_argument("kind", choices=list(QUERY_KINDS),
                    help="closest: the nearest point of the mesh; signed-distance: the distance, "
                         "negative inside; contains: inside or not (winding number); count-hits: "

@@ -14,6 +14,9 @@ Queries: :meth:`Scene.intersect` (closest hit) and :meth:`Scene.occluded`
 (any hit), with the rays of :func:`lbvh.queries.traverse.intersect`; hits
 report the instance (index and id), the mesh, the triangle within it and
 ``t`` in world space (:class:`lbvh.queries.instances.SceneHits`).
+:meth:`Scene.count_hits` and :meth:`Scene.all_hits` count or list every hit
+of each ray as :meth:`lbvh.BVH.count_hits` and :meth:`lbvh.BVH.all_hits` do,
+each hit with its instance (:class:`lbvh.queries.instance_hits.SceneAllHits`).
 :meth:`Scene.set_transforms` moves instances: only the top level is built
 again (milliseconds), never a mesh. :meth:`Scene.flattened` gives the one
 mesh the scene stands for (every instance's vertices transformed), what the
@@ -36,6 +39,7 @@ from .bvh import BVH
 from .layout import is_leaf
 from .mesh import real_array
 from .queries.closest import check_points
+from .queries.instance_hits import DEFAULT_BATCH, SceneAllHits, all_scene_hits, count_scene_hits
 from .queries.instances import SceneBuffers, SceneHits, intersect_scene
 from .queries.rays import InvalidRays
 from .tree import Mesh
@@ -270,11 +274,7 @@ class Scene:
 
     def flat_prim(self, hits: SceneHits) -> np.ndarray:
         """``int64 (N,)``: each hit's face in :meth:`flattened`'s faces, ``-1`` on a miss."""
-        if self.face_ids is not None:
-            return np.where(hits.mask, hits.prim, -1).astype(np.int64)
-        counts = np.array([self.meshes[m].num_prims for m in self.mesh_of], np.int64)
-        base = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        return np.where(hits.mask, base[np.maximum(hits.instance, 0)] + hits.prim, -1)
+        return self.flat_faces(np.where(hits.mask, hits.instance, -1), hits.prim)
 
     # -- ray queries ---------------------------------------------------------------
     def intersect(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
@@ -304,6 +304,40 @@ class Scene:
                                    triangle_test=triangle_test, batch_size=batch_size,
                                    invalid_rays=invalid_rays)
         return hits if return_hits else hits.mask
+
+    def count_hits(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
+                   batch_size: int = DEFAULT_BATCH,
+                   invalid_rays: InvalidRays = "raise") -> np.ndarray:
+        """``int32 (N,)``: how many times each ray crosses the scene in ``[tmin, tmax]``,
+        a crossing through an edge or a vertex shared by triangles of a mesh once
+        (arguments as :meth:`lbvh.BVH.count_hits`'s; a stack overflow raises
+        ``RuntimeError``); see :mod:`lbvh.queries.instance_hits`."""
+        with self.ctx.lock:
+            return count_scene_hits(self.ctx, self._buffers(), origins, directions, tmin, tmax,
+                                    batch_size=batch_size, invalid_rays=invalid_rays)
+
+    def all_hits(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
+                 max_hits: int | None = None, batch_size: int = DEFAULT_BATCH,
+                 invalid_rays: InvalidRays = "raise") -> SceneAllHits:
+        """Every hit of each ray in ``[tmin, tmax]``, nearest first, as flat arrays with
+        per-ray offsets (at most ``max_hits`` per ray, the nearest), each with its
+        instance (:class:`lbvh.queries.instance_hits.SceneAllHits`: ``instance``, ``id``,
+        ``mesh`` beside ``t``, ``prim``, ``u``, ``v``; arguments as
+        :meth:`lbvh.BVH.all_hits`'s)."""
+        with self.ctx.lock:
+            return all_scene_hits(self.ctx, self._buffers(), self.ids, self.mesh_of, origins,
+                                  directions, tmin, tmax, max_hits=max_hits,
+                                  batch_size=batch_size, invalid_rays=invalid_rays)
+
+    def flat_faces(self, instance: Any, prim: Any) -> np.ndarray:
+        """``int64``: the faces of :meth:`flattened` that hits ``(instance, prim)`` name
+        (``-1`` where ``instance`` is ``-1``); :meth:`flat_prim` for :class:`SceneHits`."""
+        instance, prim = np.asarray(instance), np.asarray(prim)
+        if self.face_ids is not None:
+            return np.where(instance >= 0, prim, -1).astype(np.int64)
+        counts = np.array([self.meshes[m].num_prims for m in self.mesh_of], np.int64)
+        base = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        return np.where(instance >= 0, base[np.maximum(instance, 0)] + prim, -1)
 
     # -- point queries -------------------------------------------------------------
     def _similarity_scales(self, what: str) -> np.ndarray:

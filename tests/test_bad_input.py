@@ -168,6 +168,13 @@ def _b(env: Env, *args: Any, **kwargs: Any):
     return lbvh.build(*args, **kwargs)
 
 
+def _scene_of(env: Env) -> "lbvh.Scene":
+    """Two instances of the environment's mesh, one moved and mirrored."""
+    moves = np.tile(np.eye(3, 4), (2, 1, 1))
+    moves[1, 0, 0], moves[1, :, 3] = -1.0, [4.0, 0.0, 0.0]
+    return lbvh.Scene([env.bvh], [0, 0], moves)
+
+
 def _scene(name: str, bad: str, expect, fragment: str = "", bug: str | None = None) -> Row:
     """A row that loads the file ``name`` of the environment with ``lbvh.load_scene``."""
     return Row("lbvh.load_scene", bad, lambda e: lbvh.load_scene(e.path(name)), expect, fragment, bug)
@@ -355,6 +362,21 @@ ROWS: list[Row] = [
         ValueError, "max_hits: 2.5"),
     Row("bvh.all_hits", "NaN origin with invalid_rays=\"miss\"", lambda e: e.bvh.all_hits(
         *_rays(e, o=(7, 0, np.nan)), invalid_rays="miss"), None),
+    # scene.count_hits and scene.all_hits: the same checks as a mesh's
+    Row("lbvh.Scene.count_hits", "NaN direction", lambda e: _scene_of(e).count_hits(
+        *_rays(e, d=(3, 1, np.nan))), ValueError, "ray 3"),
+    Row("lbvh.Scene.count_hits", "batch_size=0", lambda e: _scene_of(e).count_hits(
+        e.o, e.d, batch_size=0), ValueError, "batch_size: 0"),
+    Row("lbvh.Scene.count_hits", "no rays", lambda e: _scene_of(e).count_hits(
+        np.zeros((0, 3)), np.zeros((0, 3))), None),
+    Row("lbvh.Scene.all_hits", "tmin > tmax", lambda e: _scene_of(e).all_hits(
+        e.o, e.d, tmin=1.0, tmax=0.5), ValueError, "ray 0 has tmin 1.0 > tmax 0.5"),
+    Row("lbvh.Scene.all_hits", "negative max_hits", lambda e: _scene_of(e).all_hits(
+        e.o, e.d, max_hits=-1), ValueError, "max_hits: -1"),
+    Row("lbvh.Scene.all_hits", "origins of shape (N, 2)", lambda e: _scene_of(e).all_hits(
+        e.o[:, :2], e.d), ValueError, "shape (64, 2)"),
+    Row("lbvh.Scene.all_hits", "NaN origin with invalid_rays=\"miss\"", lambda e: _scene_of(
+        e).all_hits(*_rays(e, o=(7, 0, np.nan)), invalid_rays="miss"), None),
     # bvh.closest_points
     Row("bvh.closest_points", "NaN point", lambda e: e.bvh.closest_points(_rays(e, o=(2, 1, np.nan))[0]),
         ValueError, "point 2 has a NaN"),
@@ -591,6 +613,10 @@ def test_accepted_inputs_do_what_the_table_says():
     o, d = _rays(env, o=(7, 0, np.nan))
     missed = env.bvh.intersect(o, d, invalid_rays="miss")
     assert missed.invalid_count == 1 and missed.invalid[7] and missed.prim[7] == -1
+    scene = _scene_of(env)
+    assert scene.count_hits(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0,)
+    every = scene.all_hits(o, d, invalid_rays="miss")
+    assert every.invalid[7] and every.counts[7] == 0 and every.counts.sum() > 0
     quad = lbvh.load_scene(env.path("quad.obj"))
     assert len(quad.faces) == 2
     cut = lbvh.load_scene(env.path("between_lines.obj"))

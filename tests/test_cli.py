@@ -439,7 +439,68 @@ def test_a_file_of_placed_meshes_keeps_its_instances(capsys, tmp_path):
     hit = np.isfinite(want) & np.isfinite(got)
     assert (np.isfinite(want) == np.isfinite(got)).mean() > 0.99
     assert np.allclose(got[hit], want[hit], rtol=1e-4)
-    # point queries take one mesh: a clear error, exit 2
-    np.save(tmp_path / "p.npy", np.zeros((2, 3), np.float32))
-    assert main(["query", "closest", str(path), str(tmp_path / "p.npy")]) == 2
-    assert "3 instances of 2 meshes" in capsys.readouterr().err
+
+
+def test_query_through_a_file_of_placed_meshes(capsys, tmp_path):
+    """lbvh query on a glTF that places meshes answers through its lbvh.Scene, naming the
+    instance of each answer; what a scene refuses (closest points under a shear) is
+    refused in one line."""
+    import lbvh
+    from lbvh.rendering.scene import load_scene
+    path = tmp_path / "two.glb"
+    _placed_meshes_file(path)
+    scene = lbvh.build(load_scene(path).extras["instances"])
+    v, f, _ = scene.flattened()
+    rng = np.random.default_rng(3)
+    points = (v.min(0) + (v.max(0) - v.min(0)) * rng.uniform(-0.2, 1.2, (300, 3))).astype(np.float32)
+    np.save(tmp_path / "p.npy", points)
+    o = rng.uniform(-4, 4, (200, 3)).astype(np.float32)
+    d = (v[f[rng.integers(0, len(f), 200)]].mean(axis=1) - o).astype(np.float32)
+    np.save(tmp_path / "rays.npy", np.hstack([o, d]))
+    out = tmp_path / "out.npz"
+    assert main(["query", "closest", str(path), str(tmp_path / "p.npy"), "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "3 instances of 2 meshes" in text and "instance" in text.split("wrote:")[1]
+    distance, near, instance, prim = scene.closest_points(points)
+    with np.load(out) as got:
+        for name, want in (("distance", distance), ("points", near), ("instance", instance),
+                           ("prim", prim), ("found", instance >= 0)):
+            assert np.array_equal(got[name], want), name
+    assert set(np.unique(instance)) == {0, 1, 2}
+    for kind, name, want in (("signed-distance", "signed_distance", scene.signed_distance(points)),
+                             ("contains", "winding", scene.winding_numbers(points))):
+        assert main(["query", kind, str(path), str(tmp_path / "p.npy"), "-o", str(out)]) == 0
+        with np.load(out) as got:
+            assert np.array_equal(got[name], want), kind
+    assert scene.contains(points).any()
+    capsys.readouterr()
+    assert main(["query", "count-hits", str(path), str(tmp_path / "rays.npy"), "-o", str(out),
+                 "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    counts = scene.count_hits(o, d)
+    assert summary["instances"] == 3 and summary["hits"] == int(counts.sum()) > 0
+    with np.load(out) as got:
+        assert np.array_equal(got["counts"], counts)
+    assert main(["query", "all-hits", str(path), str(tmp_path / "rays.npy"), "-o", str(out),
+                 "--max-hits", "2", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    want = scene.all_hits(o, d, max_hits=2)
+    assert summary["instances_hit"] == 3 and summary["truncated"] == int(want.truncated.sum())
+    with np.load(out) as got:
+        for name in ("offsets", "t", "prim", "instance", "u", "v", "total"):
+            assert np.array_equal(got[name], getattr(want, name)), name
+    # a sheared instance keeps no distances in proportion: closest points are refused, in
+    # one line, exit 2; the ray queries and the winding numbers still answer
+    import trimesh
+    sheared = trimesh.Scene()
+    sheared.add_geometry(trimesh.creation.box(), geom_name="box", node_name="plain")
+    shear = np.eye(4)
+    shear[0, 1], shear[:3, 3] = 0.5, [3, 0, 0]
+    sheared.add_geometry(trimesh.creation.box(), geom_name="box2", node_name="sheared",
+                         transform=shear)
+    sheared.export(str(tmp_path / "sheared.glb"))
+    code = main(["query", "closest", str(tmp_path / "sheared.glb"), str(tmp_path / "p.npy")])
+    _assert_one_line_error(code, capsys.readouterr().err, "is not placed by a rotation")
+    assert main(["query", "count-hits", str(tmp_path / "sheared.glb"),
+                 str(tmp_path / "rays.npy")]) == 0
+    assert main(["query", "contains", str(tmp_path / "sheared.glb"), str(tmp_path / "p.npy")]) == 0

@@ -235,3 +235,203 @@ def test_point_queries_through_a_scene_of_similarities():
     sheared = lbvh.Scene([ball], [0], np.array([[[1, 0.5, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]]))
     with pytest.raises(ValueError, match="instance 0 is not placed by a rotation"):
         sheared.closest_points(p[:3])
+
+
+# -- every hit and the hit counts through a scene (kernels/instance_hits.cl) -----------------
+
+def placed_oddly(count: int, seed: int) -> np.ndarray:
+    """random_transforms, with instance 0 a reflection and instance 1 a non-uniform scale
+    with no rotation (the others: rotations, some with reflections, times non-uniform
+    scales)."""
+    t = random_transforms(count, seed, spread=4.0)
+    t[0, :, :3] = np.diag([-1.0, 1.0, 1.0]) @ t[0, :, :3]   # flips the sign of det
+    t[1, :, :3] = np.diag([2.0, 0.5, 1.3])
+    return t
+
+
+def hit_pairs(scene: lbvh.Scene, got) -> np.ndarray:
+    """``(ray, face of the flattened copy)`` of every hit, ``int64 (M, 2)``."""
+    return np.stack([got.ray, scene.flat_faces(got.instance, got.prim)], axis=1)
+
+
+def test_every_hit_through_a_scene_is_a_flattened_copys(parts):
+    from lbvh.verification.oracle import all_hits_brute
+    rng = np.random.default_rng(20)
+    scene = lbvh.Scene(parts, rng.integers(0, 3, 12), placed_oddly(12, 21))
+    v, f, _ = scene.flattened()
+    o, d = rays_at(v, f, 1500, 22)
+    got = scene.all_hits(o, d)
+    assert isinstance(got, lbvh.AllHits) and got.overflow_count == 0
+    assert got.instance.dtype == np.int32 and got.id.dtype == np.int64
+    assert got.counts.max() >= 4 and (got.counts == 0).any()          # deep rays and misses
+    assert np.array_equal(scene.count_hits(o, d), got.total)
+    assert np.array_equal(got.id, scene.ids[got.instance])
+    assert np.array_equal(got.mesh, scene.mesh_of[got.instance])
+    # nearest first within each ray
+    same_ray = got.ray[1:] == got.ray[:-1]
+    assert (got.t[1:][same_ray] >= got.t[:-1][same_ray]).all()
+    # the float64 oracle of the flattened copy: the same hits but for rays within
+    # rounding of an edge (the kernel moves the ray, the copy the vertices)
+    ref = all_hits_brute(v, f, o, d, dtype=np.float64)
+    assert (got.total == ref.total).mean() >= 0.995
+    mine = hit_pairs(scene, got)
+    theirs = np.stack([ref.ray, ref.prim.astype(np.int64)], axis=1)
+    agree = np.isin(got.ray, np.flatnonzero(got.total == ref.total))
+    assert np.array_equal(np.unique(mine[agree], axis=0),
+                          np.unique(theirs[np.isin(ref.ray, got.ray[agree])], axis=0))
+    # t within the float32 bound of the flattened mesh's oracle, hit by hit
+    key = lambda p: p[:, 0] * len(f) + p[:, 1]   # noqa: E731
+    t_ref = dict(zip(key(theirs).tolist(), ref.t.tolist()))
+    want = np.array([t_ref[k] for k in key(mine[agree]).tolist()])
+    slack = t_bound(v, f, o[got.ray[agree]], d[got.ray[agree]], want, mine[agree, 1])
+    assert (np.abs(got.t[agree] - want) <= slack).all()
+    # the barycentrics are on the hit triangle of its instance's mesh: the point they
+    # give, moved to world space, is the hit's location
+    a, b = scene.transforms[got.instance, :, :3], scene.transforms[got.instance, :, 3]
+    tri = np.stack([scene.meshes[m].vertices[scene.meshes[m].faces[p]] for m, p in
+                    zip(got.mesh, got.prim)]).astype(np.float64)
+    local = (1 - got.u - got.v)[:, None] * tri[:, 0] + got.u[:, None] * tri[:, 1] \
+        + got.v[:, None] * tri[:, 2]
+    world = np.einsum("ijk,ik->ij", a, local) + b
+    assert np.abs(world - got.locations(o, d)).max() < 1e-4 * np.abs(v).max()
+
+
+def test_identity_instances_and_spatial_splits_answer_as_one_tree():
+    """The parts of one mesh (identity instances) move no ray: every hit is the one
+    tree's, t, u, v bit for bit; a mesh of spatial splits gives each hit once, the same
+    as the same mesh's LBVH placed the same way."""
+    v, f = shipped_mesh("teapot.obj")
+    whole, parts = lbvh.build(v, f), lbvh.build_parts(v, f, part_triangles=400)
+    o, d = rays_at(v, f, 1500, 23)
+    got, want = parts.all_hits(o, d), whole.all_hits(o, d)
+    assert got.counts.max() >= 4
+    assert np.array_equal(got.offsets, want.offsets) and np.array_equal(got.total, want.total)
+    order = np.lexsort((got.prim, got.t, got.ray))   # the one tree's tie order: by triangle
+    for name in ("t", "prim", "u", "v"):
+        assert np.array_equal(getattr(got, name)[order], getattr(want, name)), name
+    assert np.array_equal(parts.count_hits(o, d), whole.count_hits(o, d))
+    moves = placed_oddly(3, 24)
+    split = lbvh.Scene([lbvh.build(v, f, builder="sbvh")], [0, 0, 0], moves)
+    plain = lbvh.Scene([whole], [0, 0, 0], moves)
+    vv, ff, _ = plain.flattened()
+    o, d = rays_at(vv, ff, 1500, 25)
+    a, b = split.all_hits(o, d), plain.all_hits(o, d)
+    assert split.meshes[0].tree.clipped_leaves and a.counts.max() >= 4
+    for name in ("offsets", "total", "t", "prim", "u", "v", "instance"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert np.array_equal(split.count_hits(o, d), b.total)
+    near = split.all_hits(o, d, max_hits=1)   # max_hits after the duplicates are dropped
+    assert np.array_equal(near.counts, np.minimum(b.counts, 1))
+
+
+def test_crossings_through_shared_vertices_and_edges_count_once():
+    """A closed ball placed by a reflection, a non-uniform scale and a rotation with a
+    shear: rays through each world-space vertex and edge midpoint of each instance, from
+    its centre (one crossing of that instance) and from outside through the centre (two):
+    without the edge rule such a ray would hit every triangle around the vertex."""
+    bv, bf = meshes.cube_sphere(5)
+    t = np.zeros((3, 3, 4))
+    t[0, :, :3] = np.diag([-1.5, 1.0, 1.0])
+    t[1, :, :3] = np.diag([2.0, 0.5, 1.25])
+    t[2, :, :3] = np.array([[1, 0.4, 0], [0, 1, 0], [0.2, 0, 0.8]]) @ np.linalg.qr(
+        np.random.default_rng(26).normal(size=(3, 3)))[0]
+    t[:, :, 3] = [[-5, 0, 0], [0, 5, 0], [5, 0, 1]]
+    scene = lbvh.Scene([lbvh.build(bv, bf)], [0, 0, 0], t)
+    v, f, owner = scene.flattened()
+    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    for k in range(3):
+        mine = np.unique(f[owner == k])
+        own_edges = edges[np.isin(edges[:, 0], mine)]
+        points = np.concatenate([v[mine], (v[own_edges[:, 0]] + v[own_edges[:, 1]]) * 0.5])
+        centre = t[k, :, 3].astype(np.float32)
+        d = (points - centre).astype(np.float32)
+        o = np.broadcast_to(centre, d.shape).astype(np.float32)
+        for origin, direction, crossings in ((o, d, 1), ((o + 3 * d).astype(np.float32), -d, 2)):
+            got = scene.all_hits(origin, direction)
+            of_k = np.bincount(got.ray[got.instance == k], minlength=len(d))
+            assert (of_k == crossings).all(), (k, crossings, np.bincount(of_k))
+
+
+def test_intervals_max_hits_and_bad_rays_through_a_scene(parts):
+    scene = lbvh.Scene(parts, [0, 1, 2, 0, 1], placed_oddly(5, 27))
+    v, f, _ = scene.flattened()
+    o, d = rays_at(v, f, 800, 28)
+    full = scene.all_hits(o, d)
+    # per-ray intervals keep exactly the hits of the whole ray inside them (t is the same
+    # number whatever the interval), in batches of any size
+    rng = np.random.default_rng(29)
+    tmin = rng.uniform(0, 0.6, len(o)).astype(np.float32)
+    tmax = (tmin + rng.uniform(0, 0.6, len(o))).astype(np.float32)
+    window = scene.all_hits(o, d, tmin, tmax, batch_size=37)
+    inside = (full.t >= tmin[full.ray]) & (full.t <= tmax[full.ray])
+    assert 0 < inside.sum() < len(full.t)
+    for name in ("ray", "t", "prim", "instance", "u", "v"):
+        assert np.array_equal(getattr(window, name), getattr(full, name)[inside]), name
+    assert np.array_equal(scene.count_hits(o, d, tmin, tmax, batch_size=64), window.total)
+    # max_hits keeps the nearest (ties: the lower instance, then triangle)
+    for k in (0, 1, 3):
+        got = scene.all_hits(o, d, max_hits=k)
+        assert np.array_equal(got.total, full.total)
+        assert np.array_equal(got.counts, np.minimum(full.counts, k))
+        assert np.array_equal(got.truncated, full.counts > k) and got.truncated.any()
+        first = np.arange(len(full.t)) - full.offsets[full.ray] < k
+        for name in ("t", "prim", "instance"):
+            assert np.array_equal(getattr(got, name), getattr(full, name)[first]), name
+    # the nearest hit is the closest hit query's
+    near, hits = scene.all_hits(o, d, max_hits=1), scene.intersect(o, d)
+    assert np.array_equal(near.ray, np.flatnonzero(hits.mask))
+    assert np.array_equal(near.t, hits.t[hits.mask])
+    assert np.array_equal(near.instance, hits.instance[hits.mask])
+    # no rays; a bad ray refused by name, or counted as no hits with invalid_rays="miss"
+    assert len(scene.all_hits(o[:0], d[:0])) == 0 and scene.count_hits(o[:0], d[:0]).shape == (0,)
+    bad = d.copy()
+    bad[3] = np.nan
+    for call in (scene.count_hits, scene.all_hits):
+        with pytest.raises(ValueError, match="ray 3"):
+            call(o, bad)
+    counts = scene.count_hits(o, bad, invalid_rays="miss")
+    assert counts[3] == 0 and np.array_equal(np.delete(counts, 3), np.delete(full.total, 3))
+    miss = scene.all_hits(o, bad, invalid_rays="miss")
+    assert miss.invalid[3] and miss.counts[3] == 0 and miss.counts.sum() == full.counts.sum() \
+        - full.counts[3]
+    with pytest.raises(ValueError, match="max_hits: -1"):
+        scene.all_hits(o, d, max_hits=-1)
+    with pytest.raises(ValueError, match="batch_size: 0"):
+        scene.count_hits(o, d, batch_size=0)
+    with pytest.raises(ValueError, match="ray 0 has tmin 1.0 > tmax 0.5"):
+        scene.all_hits(o, d, tmin=1.0, tmax=0.5)
+
+
+def deep_chain(depth: int) -> lbvh.BVH:
+    """Triangles in the planes x = 0..depth in a chain deeper than the kernels' largest
+    stack: internal node i has node i+1 on the left and the leaf of triangle i on the
+    right, so a ray along the chain pushes a leaf at every level."""
+    from lbvh.layout import make_nodes
+    k = np.arange(depth + 1, dtype=np.float32)
+    m1, p3 = np.full_like(k, -1), np.full_like(k, 3)
+    v = np.stack([np.stack([k, m1, m1], 1), np.stack([k, p3, m1], 1),
+                  np.stack([k, m1, p3], 1)], 1).reshape(-1, 3)
+    f = np.arange(3 * (depth + 1), dtype=np.uint32).reshape(-1, 3)
+    lower = [[i, -1, -1] for i in range(depth)] + [[j, -1, -1] for j in range(depth + 1)]
+    upper = [[depth, 3, 3]] * depth + [[j, 3, 3] for j in range(depth + 1)]
+    children = [[i + 1 if i + 1 < depth else 2 * depth, depth + i] for i in range(depth)] \
+        + [[-1, -1]] * (depth + 1)
+    ranges = [[0, 0]] * depth + [[j, 1] for j in range(depth + 1)]
+    nodes = make_nodes(np.float32(lower), np.float32(upper), np.array(children), np.array(ranges))
+    return lbvh.BVH.from_arrays(nodes, np.arange(depth + 1, dtype=np.int32), 0, v, f,
+                                builder="chain")
+
+
+def test_a_stack_overflow_is_raised_or_flagged_never_silent():
+    chain = deep_chain(800)
+    moves = np.tile(np.eye(3, 4), (2, 1, 1))
+    moves[1, 1, 3] = 10.0
+    scene = lbvh.Scene([chain], [0, 0], moves)
+    # along the chain (through both instances, 10 apart in y) and beside it
+    o = np.float32([[801, 0, 0.5], [801, 10, 0.5], [801, 50, 0.5]])
+    d = np.float32([[-1, 0, 0]] * 3)
+    with pytest.raises(RuntimeError, match="overflowed for 2 rays .first: ray 0"):
+        scene.count_hits(o, d)
+    got = scene.all_hits(o, d)
+    assert got.overflow.tolist() == [True, True, False] and got.overflow_count == 2
+    assert (got.total[:2] < 801).all() and got.total[2] == 0   # hits were skipped: flagged

@@ -76,6 +76,9 @@ JOBS = {
     "all hits": lambda: digest(*(lambda a: (a.offsets, a.t, a.prim))(shared.all_hits(o, d, max_hits=3))),
     "signed distance": lambda: digest(shared.signed_distance(o[:300])),
     "scene intersect": lambda: digest(*(lambda h: (h.t, h.prim, h.instance))(scene.intersect(o, d))),
+    "scene count hits": lambda: digest(scene.count_hits(o, d)),
+    "scene all hits": lambda: digest(*(lambda a: (a.offsets, a.t, a.prim, a.instance))(
+        scene.all_hits(o, d, max_hits=3))),
     "new scene": lambda: digest(lbvh.Scene([shared], [0, 0], moves * 2).occluded(o, d)),
     "scene closest points": lambda: digest(*scene.closest_points(o[:300])[:3]),
     "scene contains": lambda: digest(scene.contains(o[:300])),

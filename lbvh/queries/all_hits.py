@@ -155,10 +155,10 @@ def count_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0
     rays = _rays(origins, directions, tmin, tmax, invalid_rays)
     if target.tree.clipped_leaves:   # a triangle in several leaves: count it once
         hits = _collect(target, rays, batch, None)
-        _raise_on_overflow(hits.overflow.astype(np.int32), "count_hits")
+        raise_on_overflow(hits.overflow.astype(np.int32), "count_hits")
         return hits.total.astype(np.int32)
     counts, flags = _run(target, rays, batch, None)[:2]
-    _raise_on_overflow(flags, "count_hits")
+    raise_on_overflow(flags, "count_hits")
     return counts.astype(np.int32)
 
 
@@ -192,38 +192,44 @@ def all_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0
 
 
 def _collect(target: QueryTarget, rays: Rays, batch: int, cap: int | None) -> AllHits:
-    """The hits of checked rays as :class:`AllHits`. In a tree with spatial splits a
-    triangle may be found in several leaves, with the same t, u, v (the same test of
-    the same ray and triangle): every hit but the first of each (ray, triangle) is
-    dropped, and ``max_hits`` applied after."""
+    """The hits of checked rays as :class:`AllHits` (:func:`assemble`)."""
     dedupe = target.tree.clipped_leaves
     total, flags, kept = _run(target, rays, batch, -1 if dedupe or cap is None else cap)
+    return AllHits(*assemble(rays, total, flags, kept, cap, dedupe)[:-1])
+
+
+def assemble(rays: Rays, total: np.ndarray, flags: np.ndarray, kept: tuple[np.ndarray, ...],
+             cap: int | None, dedupe: bool) -> tuple:
+    """:class:`AllHits`' fields, then the instance of each hit (``None`` without), from
+    what :func:`run_passes` collected (``kept``: ``(t, prim, u, v)`` or ``(t, prim, u, v,
+    instance)``, unsorted within a ray): sorted by ray, then ``t``, then instance, then
+    triangle. With ``dedupe`` (a tree with spatial splits: a triangle may be found in
+    several leaves, with the same t, u, v, the same test of the same ray and triangle)
+    every hit but the first of each (ray, instance, triangle) is dropped, and
+    ``max_hits`` (``cap``) applied after."""
     counts = np.minimum(total, cap) if cap is not None and not dedupe else total
+    t, prim, u, v = kept[:4]
+    inst = kept[4] if len(kept) > 4 else None
+    ray = np.repeat(np.arange(len(rays)), counts)
+    keys = (prim,) + ((inst,) if inst is not None else ()) + (t, ray)
+    order = np.lexsort(keys)   # the last key first: ray, t, instance, triangle
+    cols = [c[order] for c in (t, prim, u, v) + ((inst,) if inst is not None else ())]
+    if dedupe:
+        ray = ray[order]
+        rows = np.stack([ray, cols[1]] + ([cols[4]] if inst is not None else []), axis=1)
+        keep = np.zeros(len(ray), bool)
+        keep[np.unique(rows, axis=0, return_index=True)[1]] = True
+        total = np.bincount(ray[keep], minlength=len(rays)).astype(np.int64)
+        rank = np.arange(int(keep.sum())) - np.repeat(np.cumsum(total) - total, total)
+        within = rank < cap if cap is not None else np.ones(len(rank), bool)
+        cols = [c[keep][within] for c in cols]
+        counts = np.bincount(ray[keep][within], minlength=len(rays))
     offsets = np.zeros(len(rays) + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
-    t, prim, u, v = kept
-    # nearest first, ties by triangle index: sort by (ray, t, prim)
-    ray = np.repeat(np.arange(len(rays)), counts)
-    order = np.lexsort((prim, t, ray))
-    if dedupe:
-        ray, t, prim, u, v = ray[order], t[order], prim[order], u[order], v[order]
-        pair = ray.astype(np.int64) * (int(prim.max(initial=0)) + 1) + prim
-        first = np.unique(pair, return_index=True)[1]
-        keep = np.zeros(len(pair), bool)
-        keep[first] = True
-        ray, t, prim, u, v = ray[keep], t[keep], prim[keep], u[keep], v[keep]
-        total = np.bincount(ray, minlength=len(rays)).astype(np.int64)
-        rank = np.arange(len(ray)) - np.repeat(np.cumsum(total) - total, total)
-        within = rank < cap if cap is not None else np.ones(len(ray), bool)
-        ray, t, prim, u, v = ray[within], t[within], prim[within], u[within], v[within]
-        counts = np.bincount(ray, minlength=len(rays)).astype(np.int64)
-        offsets = np.zeros(len(rays) + 1, np.int64)
-        np.cumsum(counts, out=offsets[1:])
-        order = np.arange(len(ray))
     overflow = (flags & (FLAG_OVERFLOW | FLAG_VISIT_LIMIT)) != 0
     invalid = rays.invalid if rays.invalid is not None else np.zeros(len(rays), bool)
-    return AllHits(offsets, t[order], prim[order], u[order], v[order], total.astype(np.int64),
-                   overflow, int(overflow.sum()), invalid)
+    return (offsets, cols[0], cols[1], cols[2], cols[3], total.astype(np.int64), overflow,
+            int(overflow.sum()), invalid, cols[4] if inst is not None else None)
 
 
 @dev.serialised
@@ -238,11 +244,13 @@ def segment_work(target: QueryTarget, origins: Any, directions: Any, tmin: Any =
     rays = _rays(origins, directions, tmin, tmax, "raise")
     work = np.zeros((len(rays), 4), np.int32)
     flags = _run(target, rays, batch, None, work)[1]
-    _raise_on_overflow(flags, "segment_work")
+    raise_on_overflow(flags, "segment_work")
     return work[:, :3].copy()
 
 
-def _raise_on_overflow(flags: np.ndarray, name: str) -> None:
+def raise_on_overflow(flags: np.ndarray, name: str) -> None:
+    """A ``RuntimeError`` naming how many rays' traversal overflowed its stack, and the
+    first, if any did: a count is never silently short."""
     bad = (flags & (FLAG_OVERFLOW | FLAG_VISIT_LIMIT)) != 0
     if bad.any():
         raise RuntimeError(f"{name}: the traversal stack overflowed for {int(bad.sum())} rays "
@@ -252,10 +260,24 @@ def _raise_on_overflow(flags: np.ndarray, name: str) -> None:
 
 def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None,
          work: np.ndarray | None = None):
+    """:func:`run_passes` of kernels/all_hits.cl over the target's tree."""
+    tree = target.tree
+    head = (tree.nodes, tree.prim_order, target.mesh.vertices_buf, target.slot_faces(),
+            tree.root, tree.num_nodes)
+    return run_passes(target.ctx, KERNEL_FILE, "all_hits", head, target.traversal_depth(), rays,
+                      batch, cap, work=work)
+
+
+def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, depth: int,
+               rays: Rays, batch: int, cap: int | None, *, instances: bool = False,
+               work: np.ndarray | None = None):
     """Count (``cap`` None) or collect (``cap`` -1: all, else at most ``cap`` per ray)
-    the hits of every good ray, batch by batch. Returns ``(total, flags)`` and, when
-    collecting, ``(t, prim, u, v)`` in ray order (unsorted within a ray). ``work``
-    (``int32 (N, 4)``, counting only) receives the counters of kernels/all_hits.cl."""
+    the hits of every good ray, batch by batch, with a kernel of all_hits.cl's arguments
+    (``head``: those before the rays; kernels/instance_hits.cl has them too, with an
+    instance column after the triangle's when ``instances``). ``depth``: the deepest
+    tree walked (the stack's size). Returns ``(total, flags)`` and, when collecting,
+    ``(t, prim, u, v)`` (and ``instance``) in ray order (unsorted within a ray).
+    ``work`` (``int32 (N, 4)``, counting only, all_hits.cl) receives its counters."""
     n = len(rays)
     total = np.zeros(n, np.int64)
     flags = np.zeros(n, np.int32)
@@ -263,9 +285,10 @@ def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None,
     good = np.arange(n) if rays.invalid is None else np.flatnonzero(~rays.invalid)
     if rays.invalid is not None:
         rays = rays.take(good)
-    ctx, tree, mem = target.ctx, target.tree, target.ctx.memory
-    stack = stack_bucket(target.traversal_depth() + 1)
-    base = {"STACK_SIZE": stack, "SLAB_PAD": slab_pad(ctx)}
+    mem = ctx.memory
+    base = {"STACK_SIZE": stack_bucket(depth + 1), "SLAB_PAD": slab_pad(ctx)}
+    # the kernel's columns: t, u, v, prim (and instance); returned as t, prim, u, v, ...
+    dtypes = (np.float32, np.float32, np.float32, np.int32) + ((np.int32,) if instances else ())
     lo, hi, stride = rays.kernel_intervals()
     m_all = len(rays)
     for start in range(0, m_all, batch):
@@ -282,13 +305,11 @@ def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None,
             bufs["work"] = mem.alloc(16 * m)
         out: list[cl.Buffer] = []
         launch = dev.Launch(m, 1, -(-m // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
-        args = (tree.nodes, tree.prim_order, target.mesh.vertices_buf, target.slot_faces(),
-                tree.root, tree.num_nodes, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"],
-                stride, m, bufs["offsets"])
+        args = (*head, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"], stride, m, bufs["offsets"],
+                bufs["counts"])
         try:
-            dev.run(ctx, KERNEL_FILE, "all_hits", launch, *args, bufs["counts"], bufs["flags"],
-                    bufs["flags"], bufs["flags"], bufs["flags"], bufs["flags"],
-                    bufs.get("work", bufs["flags"]),
+            dev.run(ctx, kernel_file, kernel, launch, *args, *[bufs["flags"]] * len(dtypes),
+                    bufs["flags"], bufs.get("work", bufs["flags"]),
                     defines={**base, "COUNT": 1, **({"COUNTERS": 1} if work is not None else {})})
             counts = dev.from_device(ctx, bufs["counts"], np.int32, (m,))
             if work is not None:
@@ -299,18 +320,16 @@ def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None,
                 offsets = np.zeros(m + 1, np.int64)
                 np.cumsum(keep, out=offsets[1:])
                 size = int(offsets[-1])
-                cols = (np.empty(size, np.float32), np.empty(size, np.int32),
-                        np.empty(size, np.float32), np.empty(size, np.float32))
+                cols = tuple(np.empty(size, t) for t in dtypes)
                 if size:
-                    out = [mem.alloc(4 * size) for _ in range(4)]
+                    out = [mem.alloc(4 * size) for _ in dtypes]
                     cl.enqueue_copy(ctx.queue, bufs["offsets"], offsets)
-                    dev.run(ctx, KERNEL_FILE, "all_hits", launch, *args, bufs["counts"],
-                            out[0], out[2], out[3], out[1], bufs["flags"], bufs["flags"],
-                            defines={**base, "COUNT": 0})
+                    dev.run(ctx, kernel_file, kernel, launch, *args, *out, bufs["flags"],
+                            bufs["flags"], defines={**base, "COUNT": 0})
                     for col, buf in zip(cols, out):
                         cl.enqueue_copy(ctx.queue, col, buf, is_blocking=False)
                     ctx.queue.finish()
-                pieces.append(cols)
+                pieces.append((cols[0], cols[3], cols[1], cols[2], *cols[4:]))
             flags[good[start:stop]] = dev.from_device(ctx, bufs["flags"], np.int32, (m,))
         finally:
             mem.free(*out, *bufs.values())
@@ -319,6 +338,6 @@ def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None,
     if pieces:
         kept = tuple(np.concatenate(c) for c in zip(*pieces))
     else:
-        kept = (np.zeros(0, np.float32), np.zeros(0, np.int32), np.zeros(0, np.float32),
-                np.zeros(0, np.float32))
+        kept = tuple(np.zeros(0, t) for t in (np.float32, np.int32, np.float32, np.float32)
+                     + ((np.int32,) if instances else ()))
     return total, flags, kept

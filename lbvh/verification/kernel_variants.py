@@ -34,7 +34,8 @@ from ..builders import bounds
 from ..builders import collapse
 from ..builders import emit
 from ..builders import morton
-from ..queries import all_hits, closest, instances, overlap, ray_order, rays, winding
+from ..queries import (all_hits, closest, instance_hits, instances, overlap, ray_order, rays,
+                       winding)
 from ..builders import refit
 from ..builders import restructure
 from ..device import sort
@@ -150,6 +151,12 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
         for stack in traverse.STACK_BUCKETS:   # segment_work: the counting pass's counters
             add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": 1, "COUNTERS": 1,
                                        "SLAB_PAD": traverse.slab_pad(ctx)})
+    # instance_hits.cl: all_hits.cl's two passes through a scene (no counters), one stack
+    # size per bucket, the slab padding of the device
+    for ctx in ctxs:
+        for stack, count in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
+            add(instance_hits.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count,
+                                            "SLAB_PAD": traverse.slab_pad(ctx)})
     # instances.cl: closest and any hit, counters, both triangle tests, one stack per bucket
     for ctx in ctxs:
         for any_hit, counters, test, stack in itertools.product(

@@ -116,14 +116,16 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
         bvh.refit(v * np.float32(1.25) if len(bvh.vertices) == len(v) else bvh.vertices * 2)
         bvh.intersect(o, d)
     collapse_leaves(trees[7])
-    # scenes of instances: closest and any hit, counters, both triangle tests; with a mesh
-    # of spatial splits too
+    # scenes of instances: closest and any hit, counters, both triangle tests, every hit and
+    # the counts; with a mesh of spatial splits too
     for parts in (trees[:2], [trees[0], trees[8]]):
         scene = lbvh.Scene(parts, [0, 1, 0], np.tile(np.eye(3, 4), (3, 1, 1)) * 1.5)
         for test in ("watertight", "moller"):
             scene.intersect(o, d, triangle_test=test, counters=True)
             scene.intersect(o, d, triangle_test=test)
             scene.occluded(o, d, triangle_test=test)
+        scene.count_hits(o, d)
+        scene.all_hits(o, d, max_hits=2)
     # Wide records of both widths, and the binary walk where records would not fit.
     bvh = trees[0]
     for width in WIDTHS:

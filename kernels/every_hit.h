@@ -1,0 +1,150 @@
+/* Every hit of one ray in one mesh's tree, counted or kept: the walk that
+ * kernels/all_hits.cl (one mesh) and kernels/instance_hits.cl (each instance
+ * of a scene) share.
+ *
+ * A depth-first traversal of the binary nodes (docs/layout.md) enters every
+ * node whose box the ray's [tmin, tmax] enters, by the slab test of
+ * kernels/ray_triangle.h, and tests every triangle of every such leaf with
+ * the watertight test under EDGE_RULE (a crossing through a shared edge or
+ * vertex counts once). A hit counts only where the ray enters the triangle's
+ * own box (accept_hit), so the set of hits does not depend on the tree.
+ *
+ * Defines (-D): STACK_SIZE and COUNT, as all_hits.cl documents them. The
+ * includer may define HIT_INSTANCE=1: each kept hit then carries an instance
+ * index too, and hits of equal t are ordered by instance before triangle.
+ */
+#ifndef LBVH_EVERY_HIT_H
+#define LBVH_EVERY_HIT_H
+
+#ifndef STACK_SIZE
+#define STACK_SIZE 64
+#endif
+#ifndef COUNT
+#define COUNT 1
+#endif
+
+#if defined(TRIANGLE_TEST) && TRIANGLE_TEST != 0
+#error "every hit is counted with the watertight test only"
+#endif
+#define EDGE_RULE 1
+#include "ray_triangle.h"
+
+#ifndef HIT_INSTANCE
+#define HIT_INSTANCE 0
+#endif
+
+/* (t, instance, prim) ordering: nearer first, then the lower instance, then the
+ * lower triangle index. */
+inline int before(float ta, int ia, int pa, float tb, int ib, int pb) {
+    return ta < tb || (ta == tb && (ia < ib || (ia == ib && pa < pb)));
+}
+
+/* Where the found-th hit (t, inst, prim) of a ray goes among its cap slots from
+ * `first`: the next free one while they last; past the cap the farthest kept
+ * hit's, when this one is nearer; -1 for nowhere. */
+inline long hit_slot(long first, int cap, int found, float t, int inst, int prim,
+                     __global const float *out_t, __global const int *out_inst,
+                     __global const int *out_prim) {
+    if (found < cap) return first + found;
+    if (cap <= 0) return -1;
+    long far = first;
+    for (long k = first + 1; k < first + cap; ++k)
+        if (before(out_t[far], HIT_INSTANCE ? out_inst[far] : 0, out_prim[far], out_t[k],
+                   HIT_INSTANCE ? out_inst[k] : 0, out_prim[k]))
+            far = k;
+    return before(t, inst, prim, out_t[far], HIT_INSTANCE ? out_inst[far] : 0, out_prim[far])
+               ? far : -1;
+}
+
+/* A step of the walk at an internal node whose children are a and b: the child
+ * to enter next, -1 for none; b pushed when both are entered (a full stack sets
+ * FLAG_OVERFLOW and skips it). */
+inline int enter_children(__global const float4 *nodes, int a, int b, const Ray *ray, int *stack,
+                          int *top, int *flag) {
+    float ea, eb, leave;
+    const int in_a = slab((__global const float *)(nodes + 2 * a), ray, ray->tmax, &ea, &leave);
+    const int in_b = slab((__global const float *)(nodes + 2 * b), ray, ray->tmax, &eb, &leave);
+    if (in_a && in_b) {
+        if (*top < STACK_SIZE) stack[(*top)++] = b;
+        else *flag |= FLAG_OVERFLOW;
+    }
+    return in_a ? a : (in_b ? b : -1);
+}
+
+/* The slots of ray i's kept hits: returns how many, from *first (offsets: the
+ * host's prefix sum of the capped counts); none in the counting pass. */
+inline int kept_slots(__global const long *offsets, int i, long *first) {
+#if COUNT
+    *first = 0;
+    return 0;
+#else
+    *first = offsets[i];
+    return (int)(offsets[i + 1] - offsets[i]);
+#endif
+}
+
+/* Every hit of *ray in the tree at `root` (of `num_nodes` nodes): *found counts
+ * them; with COUNT=0 they are kept in [first, first + cap) (hit_slot), t along
+ * the direction *ray was made from (make_ray's scaling undone), the triangle in
+ * prim_order's numbering and, with HIT_INSTANCE, `inst`. *visits, *leaves and
+ * *tested count the nodes entered, the leaves among them and the triangles
+ * tested; *flag gets FLAG_OVERFLOW or FLAG_VISIT_LIMIT. */
+inline void tree_hits(__global const float4 *nodes, __global const int *prim_order,
+                      __global const float *vertices, __global const uint *slot_faces,
+                      int root, int num_nodes, const Ray *ray, int inst, long first, int cap,
+                      __global float *out_t, __global float *out_u, __global float *out_v,
+                      __global int *out_prim, __global int *out_inst, int *found, int *flag,
+                      int *visits, int *leaves, int *tested) {
+    float entry, leave;
+    int node = slab((__global const float *)(nodes + 2 * root), ray, ray->tmax, &entry,
+                    &leave) ? root : -1;
+    int stack[STACK_SIZE];
+    int top = 0, steps = 0;
+    for (;;) {
+        if (node >= 0) {
+            ++*visits;
+            if (++steps > num_nodes) {
+                *flag |= FLAG_VISIT_LIMIT;
+                break;
+            }
+            const int a = as_int(nodes[2 * node].w), b = as_int(nodes[2 * node + 1].w);
+            if (node_is_leaf(b)) {
+                ++*leaves;
+                *tested -= b;
+                for (int s = a; s < a - b; ++s) {
+                    float t = INFINITY, u = 0.0f, v = 0.0f;
+                    if (!hit_triangle(vertices, 3 * (int)slot_faces[3 * s],
+                                      3 * (int)slot_faces[3 * s + 1],
+                                      3 * (int)slot_faces[3 * s + 2], ray, -1.0f, &t, &u, &v))
+                        continue;
+#if !COUNT
+                    /* t along d * 2^-texp (make_ray) back to d; + 0.0f: no -0.0 */
+                    if (ray->texp != 0) t = ldexp(t, -ray->texp);
+                    t += 0.0f;
+                    const int prim = prim_order[s];
+                    const long slot = hit_slot(first, cap, *found, t, inst, prim, out_t, out_inst,
+                                               out_prim);
+                    if (slot >= 0) {
+                        out_t[slot] = t;
+                        out_u[slot] = u;
+                        out_v[slot] = v;
+                        out_prim[slot] = prim;
+#if HIT_INSTANCE
+                        out_inst[slot] = inst;
+#endif
+                    }
+#endif
+                    ++*found;
+                }
+                node = -1;
+            } else {
+                node = enter_children(nodes, a, b, ray, stack, &top, flag);
+            }
+            continue;
+        }
+        if (top == 0) break;
+        node = stack[--top];
+    }
+}
+
+#endif
