@@ -62,6 +62,7 @@ import numpy as np
 import lbvh
 from lbvh import device as dev
 from lbvh.builders import pipeline
+from lbvh.queries.instances import NODE_CHUNKS
 from lbvh.rendering.scene import load_mesh
 from lbvh.verification import meshes
 from lbvh.verification.error_bound import t_bound
@@ -553,8 +554,10 @@ def device_limits(ctx: dev.Context, peak_bpt: float, input_bpt: float) -> dict:
     alloc, total = int(ctx.device.max_mem_alloc_size), int(ctx.device.global_mem_size)
     one = pipeline.max_triangles(ctx)
     by_memory = int(total / (peak_bpt + input_bpt))
+    in_parts = NODE_CHUNKS * one
     return {"device": ctx.name, "max_mem_alloc_size": alloc, "global_mem_size": total,
-            "max_triangles_one_tree": one, "bytes_per_triangle_peak": peak_bpt,
+            "max_triangles_one_tree": one, "max_triangles_in_parts": in_parts,
+            "bytes_per_triangle_peak": peak_bpt,
             "bytes_per_triangle_input": input_bpt, "max_triangles_by_global_memory": by_memory,
             "meaning": (
                 f"One tree's node buffer (32 B x (2F - 1)) must fit one allocation of "
@@ -562,7 +565,9 @@ def device_limits(ctx: dev.Context, peak_bpt: float, input_bpt: float) -> dict:
                 "(lbvh.builders.pipeline.max_triangles). lbvh.build cuts a larger mesh into "
                 "parts of that many triangles, consecutive in Morton order, and returns a "
                 "lbvh.Scene of them (lbvh.build_parts; hits keep the mesh's own triangle "
-                f"numbers). The whole build must also fit the device's {total / 2**30:.1f} GiB: "
+                f"numbers), whose kernels read the parts' trees from {NODE_CHUNKS} node "
+                f"buffers of one allocation each: up to {in_parts:,} triangles in parts "
+                "(lbvh.queries.instances.NODE_CHUNKS). The whole build must also fit the device's {total / 2**30:.1f} GiB: "
                 f"at {peak_bpt:.0f} B/triangle of build peak beyond the input and "
                 f"{input_bpt:.0f} B/triangle of input, about {by_memory:,} triangles in one "
                 "build; a mesh in parts keeps every part's tree and mesh on the device, only "
@@ -655,9 +660,10 @@ def markdown(report: dict) -> str:
     dl = report["device_limits"]
     lines += ["## The largest mesh the device takes", "",
               "| device | max_mem_alloc_size | global_mem_size | triangles in one tree | "
-              "triangles by global memory |", "|---|---:|---:|---:|---:|",
+              "triangles in parts | triangles by global memory |", "|---|---:|---:|---:|---:|---:|",
               f"| {dl['device']} | {dl['max_mem_alloc_size'] / 2**30:.2f} GiB "
               f"| {dl['global_mem_size'] / 2**30:.2f} GiB | {dl['max_triangles_one_tree']:,} "
+              f"| {dl['max_triangles_in_parts']:,} "
               f"| {dl['max_triangles_by_global_memory']:,} |", "", dl["meaning"], ""]
     p = report.get("parts")
     if p is not None:

@@ -35,7 +35,9 @@
 __kernel void instance_hits(__global const float4 *top_nodes, __global const int *top_order,
                             const int top_root, const int top_num_nodes,
                             __global const float *inverse, __global const int *inst_root,
-                            __global const float4 *nodes, const int num_nodes,
+                            __global const float4 *nodes, __global const float4 *nodes1,
+                            __global const float4 *nodes2, __global const float4 *nodes3,
+                            const int num_nodes,
                             __global const int *prim_order, __global const float *vertices,
                             __global const uint *slot_faces,
                             __global const float *origins, __global const float *directions,
@@ -72,7 +74,8 @@ __kernel void instance_hits(__global const float4 *top_nodes, __global const int
                     const int inst = top_order[s];
                     Ray moved;
                     if (move_ray(inverse + 12 * inst, w, tmin, tmax, &moved))
-                        tree_hits(nodes, prim_order, vertices, slot_faces, inst_root[inst],
+                        tree_hits(chunk_nodes(inst_root[inst], nodes, nodes1, nodes2, nodes3),
+                                  prim_order, vertices, slot_faces, chunk_root(inst_root[inst]),
                                   num_nodes, &moved, inst, first, cap, out_t, out_u, out_v,
                                   out_prim, out_inst, &found, &flag, &visits, &leaves, &tested);
                 }

@@ -3,10 +3,12 @@
  *
  * The top level is an LBVH over the instances' world boxes (docs/layout.md;
  * its slots name instances through top_order). The meshes' trees sit one
- * after the other in one node array, one prim_order and one slot_faces (the
- * faces in slot order, vertex indices into one vertex array), their child
- * and slot indices already offset by the host; inst_root[i] is the root node
- * of instance i's mesh.
+ * after the other in up to four node arrays (nodes, nodes1..3: chunks of the
+ * device's largest allocation, kernels/instance_ray.h), one prim_order and
+ * one slot_faces (the faces in slot order, vertex indices into one vertex
+ * array), their child indices offset within their chunk and slot indices
+ * offset by the host; inst_root[i] names the chunk and the root node of
+ * instance i's mesh (chunk_nodes, chunk_root).
  *
  * Per ray: an ordered traversal of the top level with the world ray (the
  * nearer child first, the other pushed with its entry distance, popped only
@@ -143,7 +145,9 @@ inline int trace_mesh(__global const float4 *nodes, __global const float *vertic
 __kernel void trace_instances(__global const float4 *top_nodes, __global const int *top_order,
                               const int top_root, const int top_num_nodes,
                               __global const float *inverse, __global const int *inst_root,
-                              __global const float4 *nodes, const int num_nodes,
+                              __global const float4 *nodes, __global const float4 *nodes1,
+                              __global const float4 *nodes2, __global const float4 *nodes3,
+                              const int num_nodes,
                               __global const int *prim_order, __global const float *vertices,
                               __global const uint *slot_faces,
                               __global const float *origins, __global const float *directions,
@@ -184,7 +188,9 @@ __kernel void trace_instances(__global const float4 *top_nodes, __global const i
                     continue;
                 float t, u, v;
                 int slot = -1;
-                if (trace_mesh(nodes, vertices, slot_faces, inst_root[inst], num_nodes, &moved, &t,
+                const int r = inst_root[inst];
+                if (trace_mesh(chunk_nodes(r, nodes, nodes1, nodes2, nodes3), vertices, slot_faces,
+                               chunk_root(r), num_nodes, &moved, &t,
                                &u, &v, &slot, &flag, &visited, &tested)) {
                     if (moved.texp != 0) t = ldexp(t, -moved.texp);
                     if (t < best || best_slot < 0) {

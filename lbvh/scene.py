@@ -36,15 +36,22 @@ from .builders.bounds import round_outward
 from .builders.options import LBVHOptions
 from .builders.pipeline import build_tree
 from .bvh import BVH
-from .layout import is_leaf
+from .layout import NODE_DTYPE, is_leaf
 from .mesh import real_array
 from .queries.closest import check_points
 from .queries.instance_hits import DEFAULT_BATCH, SceneAllHits, all_scene_hits, count_scene_hits
-from .queries.instances import SceneBuffers, SceneHits, intersect_scene
+from .queries.instances import (NODE_CHUNKS, ROOT_BITS, SceneBuffers, SceneHits, intersect_scene,
+                                node_chunks)
 from .queries.rays import InvalidRays
 from .tree import Mesh
 
 __all__ = ["Scene", "check_transforms"]
+
+
+def chunk_nodes(ctx: dev.Context) -> int:
+    """The most nodes one of a scene's node buffers holds: the device's largest
+    allocation (read from the device) over the node's 32 bytes."""
+    return int(ctx.memory.max_alloc) // NODE_DTYPE.itemsize
 
 
 def check_transforms(transforms: Any, count: int | None = None) -> np.ndarray:
@@ -154,7 +161,11 @@ class Scene:
         nodes, orders, verts, slot_faces, roots = [], [], [], [], []
         node_base = slot_base = vertex_base = 0
         depth = 0
-        for bvh in self.meshes:
+        chunks = node_chunks([bvh.num_nodes for bvh in self.meshes], chunk_nodes(self.ctx))
+        previous = 0
+        for bvh, chunk in zip(self.meshes, chunks):
+            if chunk != previous:   # a new chunk: its nodes numbered from 0
+                node_base, previous = 0, chunk
             n = bvh.nodes.copy()
             leaf = is_leaf(n)
             n["a"] += np.where(leaf, slot_base, node_base).astype(np.int32)
@@ -165,21 +176,22 @@ class Scene:
             orders.append(order if self.face_ids is None else self.face_ids[len(orders)][order])
             slot_faces.append((bvh.faces[order].astype(np.int64) + vertex_base).astype(np.uint32))
             verts.append(bvh.vertices)
-            roots.append(node_base + bvh.root)
+            roots.append((chunk << ROOT_BITS) | (node_base + bvh.root))
             depth = max(depth, bvh.traversal_depth())
             node_base += bvh.num_nodes
             slot_base += bvh.num_prims
             vertex_base += len(bvh.vertices)
         up = self.ctx.memory.upload
-        self._nodes = up(np.concatenate(nodes))
-        self._num_nodes = node_base
+        self._chunks = [up(np.concatenate([n for n, c in zip(nodes, chunks) if c == k]))
+                        for k in range(chunks[-1] + 1)]
+        self._num_nodes = int(sum(bvh.num_nodes for bvh in self.meshes))
         self._prim_order = up(np.concatenate(orders).astype(np.int32))
         self._vertices = up(np.concatenate(verts))
         self._slot_faces = up(np.concatenate(slot_faces))
         self._mesh_roots = np.array(roots, np.int32)
         self._mesh_depth = depth
         self._inst_root = up(self._mesh_roots[self.mesh_of])
-        self._owned: list[cl.Buffer] = [self._nodes, self._prim_order, self._vertices,
+        self._owned: list[cl.Buffer] = [*self._chunks, self._prim_order, self._vertices,
                                         self._slot_faces, self._inst_root]
         weakref.finalize(self, self.ctx.memory.dropped, self._owned)
 
@@ -211,7 +223,8 @@ class Scene:
         self._owned.append(self._inverse)
 
     def _buffers(self) -> SceneBuffers:
-        return SceneBuffers(self.top.tree, self._inverse, self._inst_root, self._nodes,
+        nodes = tuple(self._chunks[min(k, len(self._chunks) - 1)] for k in range(NODE_CHUNKS))
+        return SceneBuffers(self.top.tree, self._inverse, self._inst_root, nodes,
                             self._num_nodes, self._prim_order, self._vertices, self._slot_faces,
                             max(self._mesh_depth, self.top.traversal_depth()),
                             not any(m.tree.clipped_leaves for m in self.meshes))

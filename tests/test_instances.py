@@ -78,11 +78,11 @@ def test_instances_hit_what_a_flattened_copy_hits(parts):
 def test_moving_instances_rebuilds_the_top_only(parts):
     t = random_transforms(12, 4)
     scene = lbvh.Scene(parts, np.arange(12) % 3, t, ids=np.arange(100, 112))
-    mesh_nodes = scene._nodes
+    mesh_nodes = scene._chunks
     v, f, _ = scene.flattened()
     o, d = rays_at(v, f, 2000, 5)
     scene.set_transforms([103, 107], t[[7, 3]] * [[1.1], [1.0], [0.9]])
-    assert scene._nodes is mesh_nodes   # the meshes' trees are not touched
+    assert scene._chunks is mesh_nodes   # the meshes' trees are not touched
     assert_like_flattened(scene, o, d)
     # a bad move changes nothing
     before = scene.transforms.copy()
@@ -182,11 +182,26 @@ def test_a_mesh_beyond_the_largest_buffer_is_built_in_parts(monkeypatch):
     from lbvh.builders import pipeline
     v, f = shipped_mesh("teapot.obj")
     monkeypatch.setattr(pipeline, "max_triangles", lambda ctx: 1000)
+    # the scene's node buffers obey the same limit: two parts' trees to a buffer
+    monkeypatch.setattr(lbvh.scene, "chunk_nodes", lambda ctx: 4000)
     scene = lbvh.build(v, f)
     assert isinstance(scene, lbvh.Scene) and scene.num_instances == -(-len(f) // 1000)
+    assert len(scene._chunks) == 4 and max(c.size for c in scene._chunks) <= 4000 * 32
     o, d = rays_at(v, f, 1000, 11)
     monkeypatch.undo()
-    assert np.array_equal(scene.intersect(o, d).t, lbvh.build(v, f).intersect(o, d).t)
+    whole = lbvh.build(v, f)
+    assert np.array_equal(scene.intersect(o, d).t, whole.intersect(o, d).t)
+    assert np.array_equal(scene.occluded(o, d), whole.occluded(o, d))
+    assert np.array_equal(scene.count_hits(o, d), whole.count_hits(o, d))
+    got, want = scene.all_hits(o, d), whole.all_hits(o, d)
+    assert np.array_equal(got.offsets, want.offsets) and np.array_equal(got.t, want.t)
+
+
+def test_trees_beyond_the_scenes_node_buffers_are_refused(monkeypatch):
+    v, f = shipped_mesh("teapot.obj")
+    monkeypatch.setattr(lbvh.scene, "chunk_nodes", lambda ctx: 2000)   # a part's tree each
+    with pytest.raises(lbvh.DeviceError, match="need more than 4 node buffers"):
+        lbvh.build_parts(v, f, part_triangles=1000)
 
 
 def similarity_transforms(count: int, seed: int) -> np.ndarray:

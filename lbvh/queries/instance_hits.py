@@ -52,7 +52,7 @@ class SceneAllHits(AllHits):
 def _run(ctx: dev.Context, buffers: SceneBuffers, rays: Rays, batch: int, cap: int | None):
     top = buffers.top
     head = (top.nodes, top.prim_order, top.root, top.num_nodes, buffers.inverse,
-            buffers.inst_root, buffers.nodes, buffers.num_nodes, buffers.prim_order,
+            buffers.inst_root, *buffers.nodes, buffers.num_nodes, buffers.prim_order,
             buffers.vertices, buffers.slot_faces)
     return run_passes(ctx, KERNEL_FILE, "instance_hits", head, buffers.depth, rays, batch, cap,
                       instances=True)

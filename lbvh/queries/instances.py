@@ -19,7 +19,7 @@ rounding of the coordinates).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import pyopencl as cl
@@ -42,21 +42,53 @@ class SceneBuffers:
 
     ``top``: the top-level tree over the instances' world boxes (its slots name
     instances). ``inverse``: ``float32 (I, 12)`` world-to-mesh transforms (M row by
-    row, then c). ``inst_root``: ``int32 (I,)`` root node of each instance's mesh in
-    ``nodes``. ``nodes``, ``prim_order``, ``vertices``, ``slot_faces``: every mesh's
-    tree and faces one after the other, indices offset. ``depth``: the deepest tree
-    of both levels (the stack's size). ``exact_leaves``: no mesh has spatial splits.
+    row, then c). ``nodes``: :data:`NODE_CHUNKS` node buffers ("chunks", each within
+    the device's largest allocation; unused ones repeat the last), every mesh's tree
+    in one of them, the meshes of a chunk one after the other, child indices offset
+    within it. ``inst_root``: ``int32 (I,)`` each instance's chunk in bits
+    :data:`ROOT_BITS` and up, the root node of its mesh within the chunk below.
+    ``prim_order``, ``vertices``, ``slot_faces``: every mesh's slots and faces one
+    after the other, indices offset. ``num_nodes``: the nodes of all chunks.
+    ``depth``: the deepest tree of both levels (the stack's size). ``exact_leaves``:
+    no mesh has spatial splits.
     """
     top: Tree
     inverse: cl.Buffer
     inst_root: cl.Buffer
-    nodes: cl.Buffer
+    nodes: tuple[cl.Buffer, ...]
     num_nodes: int
     prim_order: cl.Buffer
     vertices: cl.Buffer
     slot_faces: cl.Buffer
     depth: int
     exact_leaves: bool = True
+
+
+#: Node buffers a scene's kernels take (kernels/instance_ray.h, chunk_nodes): a mesh
+#: in parts (lbvh.build_parts) passes the device's largest allocation by this much.
+NODE_CHUNKS = 4
+#: inst_root's bits below the chunk number: the root node within its chunk.
+ROOT_BITS = 28
+
+
+def node_chunks(node_counts: Sequence[int], per_chunk: int) -> list[int]:
+    """The chunk of each mesh's tree: consecutive meshes packed greedily into node
+    buffers of at most ``per_chunk`` nodes (the device's largest allocation) and
+    ``2^ROOT_BITS``. Raises :class:`lbvh.DeviceError` where :data:`NODE_CHUNKS` do
+    not hold them all."""
+    per_chunk = min(int(per_chunk), 1 << ROOT_BITS)
+    chunks, chunk, used = [], 0, 0
+    for n in node_counts:
+        if used and used + n > per_chunk:
+            chunk, used = chunk + 1, 0
+        if n > per_chunk or chunk >= NODE_CHUNKS:
+            raise dev.DeviceError(
+                f"lbvh: the scene's trees ({sum(node_counts):,} nodes) need more than "
+                f"{NODE_CHUNKS} node buffers of the device's largest allocation "
+                f"({per_chunk:,} nodes); place fewer or smaller meshes")
+        chunks.append(chunk)
+        used += n
+    return chunks
 
 
 @dataclass
@@ -141,7 +173,7 @@ def intersect_scene(ctx: dev.Context, buffers: SceneBuffers, ids: np.ndarray,
             launch = dev.Launch(m, 1, -(-m // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
             ev = dev.run(ctx, KERNEL_FILE, "trace_instances", launch, top.nodes, top.prim_order,
                          top.root, top.num_nodes, buffers.inverse, buffers.inst_root,
-                         buffers.nodes, buffers.num_nodes, buffers.prim_order, buffers.vertices,
+                         *buffers.nodes, buffers.num_nodes, buffers.prim_order, buffers.vertices,
                          buffers.slot_faces, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"], stride,
                          bufs["hits"], bufs["flags"], bufs["count"], m, defines=defines)
             for k in range(5):
