@@ -10,14 +10,14 @@ import numpy as np
 import pyopencl as cl
 import pytest
 
-from conftest import random_soup, shared_mesh, shipped_mesh
+from conftest import random_soup, shipped_mesh
 from lbvh import device as dev
 from lbvh.builders.bounds import (centroid_bounds_numpy, triangle_bounds, triangle_boxes_numpy,
                          triangle_centres_numpy)
 from lbvh.builders.emit import emit_hierarchy, emit_hierarchy_python
 from lbvh.layout import NODE_DTYPE, children_of, node_depths
 from lbvh.builders.morton import KEY_DTYPE, count_duplicates, morton_codes, morton_codes_numpy
-from lbvh.builders.refit import refit_boxes, refit_from_boxes, refit_numpy
+from lbvh.builders.refit import refit_from_boxes, refit_numpy
 from lbvh.device.sort import (LOCAL_BITS, MSD_MIN_KEYS, SCRATCH_BYTES, digit_shifts, expected_mask,
                        msd_plan, radix_sort, radix_sort_numpy)
 

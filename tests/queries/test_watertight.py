@@ -9,7 +9,6 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-import pyopencl as cl
 import pytest
 import trimesh
 
