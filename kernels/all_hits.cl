@@ -1,7 +1,7 @@
 /* Every hit along each ray, and the hit counts (lbvh/queries/all_hits.py).
  *
  * Per ray, the walk of kernels/every_hit.h: a depth-first traversal of every
- * node whose box the ray's [tmin, tmax] enters, every triangle of every such
+ * node (binary, or wide record with WIDE=1) whose box the ray's [tmin, tmax] enters, every triangle of every such
  * leaf tested with the watertight test (Woop, Benthin, Wald 2013) under
  * EDGE_RULE: a ray through an edge or a vertex shared by several triangles
  * hits exactly one of them where it crosses the surface (simulation of
@@ -20,7 +20,11 @@
  *   STACK_SIZE=n  stack entries; a push beyond n sets FLAG_OVERFLOW and skips
  *                 that subtree (the host sizes it from the tree's depth).
  *   COUNT=0|1     the pass.
- *   COUNTERS=1    (with COUNT=1) also write per ray the internal nodes and the
+ *   WIDE=1        walk the tree's wide records (kernels/wide.cl, `records`,
+ *                 the root's reference (root_x, root_y); WIDTH=4 or 8 lanes)
+ *                 instead of its binary nodes: the same hits, one vector slab
+ *                 test per record (wide_tree_hits in every_hit.h).
+ *   COUNTERS=1    (with COUNT=1, WIDE=0) also write per ray the internal nodes and the
  *                 leaves entered and the triangles tested: with tmax at the
  *                 closest hit, the work any traversal must do for that ray
  *                 (the ray-sampled cost of lbvh/verification/quality.py).
@@ -35,10 +39,14 @@
 #if COUNTERS && !COUNT
 #error "COUNTERS goes with the counting pass"
 #endif
+#if COUNTERS && WIDE
+#error "COUNTERS counts binary nodes: WIDE=0"
+#endif
 
-__kernel void all_hits(__global const float4 *nodes, __global const int *prim_order,
+__kernel void all_hits(__global const float4 *nodes, __global const float *records,
+                       __global const int *prim_order,
                        __global const float *vertices, __global const uint *slot_faces,
-                       const int root, const int num_nodes,
+                       const int root, const int root_x, const int root_y, const int num_nodes,
                        __global const float *origins, __global const float *directions,
                        __global const float *tmins, __global const float *tmaxs,
                        const int interval_stride, const int count,
@@ -58,10 +66,16 @@ __kernel void all_hits(__global const float4 *nodes, __global const int *prim_or
                         ray.tmin != ray.tmin || ray.tmax != ray.tmax;   /* isnan */
     if (nan_ray) flag |= FLAG_NAN_RAY;
     int visits = 0, leaves = 0, tested = 0;
+#if WIDE
+    if (!nan_ray)
+        wide_tree_hits(nodes, records, prim_order, vertices, slot_faces, root, root_x, root_y,
+                       num_nodes, &ray, first, cap, out_t, out_u, out_v, out_prim, &found, &flag);
+#else
     if (!nan_ray)
         tree_hits(nodes, prim_order, vertices, slot_faces, root, num_nodes, &ray, 0, first, cap,
                   out_t, out_u, out_v, out_prim, out_prim, &found, &flag, &visits, &leaves,
                   &tested);
+#endif
 #if COUNT
     counts[i] = found;
 #endif

@@ -9,7 +9,8 @@
  * vertex counts once). A hit counts only where the ray enters the triangle's
  * own box (accept_hit), so the set of hits does not depend on the tree.
  *
- * Defines (-D): STACK_SIZE and COUNT, as all_hits.cl documents them. The
+ * Defines (-D): STACK_SIZE, COUNT, WIDE and WIDTH, as all_hits.cl documents
+ * them (WIDE=1 adds wide_tree_hits, the walk through wide records). The
  * includer may define HIT_INSTANCE=1: each kept hit then carries an instance
  * index too, and hits of equal t are ordered by instance before triangle.
  */
@@ -31,6 +32,9 @@
 
 #ifndef HIT_INSTANCE
 #define HIT_INSTANCE 0
+#endif
+#ifndef WIDE
+#define WIDE 0
 #endif
 
 /* (t, instance, prim) ordering: nearer first, then the lower instance, then the
@@ -83,6 +87,40 @@ inline int kept_slots(__global const long *offsets, int i, long *first) {
 #endif
 }
 
+/* Every hit of *ray among the `count` triangles of slots [s0, s0 + count): *found
+ * counts them; with COUNT=0 they are kept in [first, first + cap) (hit_slot), t
+ * along the direction *ray was made from (make_ray's scaling undone), the
+ * triangle in prim_order's numbering and, with HIT_INSTANCE, `inst`. */
+inline void leaf_hits(__global const int *prim_order, __global const float *vertices,
+                      __global const uint *slot_faces, int s0, int count, const Ray *ray,
+                      int inst, long first, int cap, __global float *out_t,
+                      __global float *out_u, __global float *out_v, __global int *out_prim,
+                      __global int *out_inst, int *found) {
+    for (int s = s0; s < s0 + count; ++s) {
+        float t = INFINITY, u = 0.0f, v = 0.0f;
+        if (!hit_triangle(vertices, 3 * (int)slot_faces[3 * s], 3 * (int)slot_faces[3 * s + 1],
+                          3 * (int)slot_faces[3 * s + 2], ray, -1.0f, &t, &u, &v))
+            continue;
+#if !COUNT
+        /* t along d * 2^-texp (make_ray) back to d; + 0.0f: no -0.0 */
+        if (ray->texp != 0) t = ldexp(t, -ray->texp);
+        t += 0.0f;
+        const int prim = prim_order[s];
+        const long slot = hit_slot(first, cap, *found, t, inst, prim, out_t, out_inst, out_prim);
+        if (slot >= 0) {
+            out_t[slot] = t;
+            out_u[slot] = u;
+            out_v[slot] = v;
+            out_prim[slot] = prim;
+#if HIT_INSTANCE
+            out_inst[slot] = inst;
+#endif
+        }
+#endif
+        ++*found;
+    }
+}
+
 /* Every hit of *ray in the tree at `root` (of `num_nodes` nodes): *found counts
  * them; with COUNT=0 they are kept in [first, first + cap) (hit_slot), t along
  * the direction *ray was made from (make_ray's scaling undone), the triangle in
@@ -111,31 +149,8 @@ inline void tree_hits(__global const float4 *nodes, __global const int *prim_ord
             if (node_is_leaf(b)) {
                 ++*leaves;
                 *tested -= b;
-                for (int s = a; s < a - b; ++s) {
-                    float t = INFINITY, u = 0.0f, v = 0.0f;
-                    if (!hit_triangle(vertices, 3 * (int)slot_faces[3 * s],
-                                      3 * (int)slot_faces[3 * s + 1],
-                                      3 * (int)slot_faces[3 * s + 2], ray, -1.0f, &t, &u, &v))
-                        continue;
-#if !COUNT
-                    /* t along d * 2^-texp (make_ray) back to d; + 0.0f: no -0.0 */
-                    if (ray->texp != 0) t = ldexp(t, -ray->texp);
-                    t += 0.0f;
-                    const int prim = prim_order[s];
-                    const long slot = hit_slot(first, cap, *found, t, inst, prim, out_t, out_inst,
-                                               out_prim);
-                    if (slot >= 0) {
-                        out_t[slot] = t;
-                        out_u[slot] = u;
-                        out_v[slot] = v;
-                        out_prim[slot] = prim;
-#if HIT_INSTANCE
-                        out_inst[slot] = inst;
-#endif
-                    }
-#endif
-                    ++*found;
-                }
+                leaf_hits(prim_order, vertices, slot_faces, a, -b, ray, inst, first, cap, out_t,
+                          out_u, out_v, out_prim, out_inst, found);
                 node = -1;
             } else {
                 node = enter_children(nodes, a, b, ray, stack, &top, flag);
@@ -146,5 +161,67 @@ inline void tree_hits(__global const float4 *nodes, __global const int *prim_ord
         node = stack[--top];
     }
 }
+
+#if WIDE
+#include "wide_slab.h"
+
+/* tree_hits through the tree's wide records (kernels/wide.cl): references (x,
+ * y) as kernels/traverse.cl takes them (a leaf's node words, or (record, 0)),
+ * the root's (root_x, root_y) after its box in `nodes` is entered; at a record
+ * every lane the ray's [tmin, tmax] enters, by one vector slab test
+ * (wide_slab.h), is entered: the first followed, the others pushed. The same
+ * hits as the binary walk: accept_hit decides each triangle by its own box. */
+inline void wide_tree_hits(__global const float4 *nodes, __global const float *records,
+                           __global const int *prim_order, __global const float *vertices,
+                           __global const uint *slot_faces, int root, int root_x, int root_y,
+                           int num_nodes, const Ray *ray, long first, int cap,
+                           __global float *out_t, __global float *out_u, __global float *out_v,
+                           __global int *out_prim, int *found, int *flag) {
+    WideRay w;
+    make_wide_ray(ray, &w);
+    __global const int *words = (__global const int *)records;
+    float entry, leave;
+    int go = slab((__global const float *)(nodes + 2 * root), ray, ray->tmax, &entry, &leave);
+    int stack_x[STACK_SIZE], stack_y[STACK_SIZE];
+    int top = 0, steps = 0, x = root_x, y = root_y;
+    while (go) {
+        if (++steps > num_nodes) {
+            *flag |= FLAG_VISIT_LIMIT;
+            break;
+        }
+        if (node_is_leaf(y)) {
+            leaf_hits(prim_order, vertices, slot_faces, x, -y, ray, 0, first, cap, out_t, out_u,
+                      out_v, out_prim, out_prim, found);
+        } else {
+            intw_lanes hit;
+            floatw_lanes enter, exit;
+            wide_slab((__global const floatw *)records + 8 * x, ray, &w, ray->tmax, &hit, &enter,
+                      &exit);
+            __global const int *ref = words + 8 * WIDTH * x + 6 * WIDTH;
+            int next = -1;
+            for (int c = 0; c < WIDTH; ++c) {
+                if (!hit.s[c]) continue;
+                if (next < 0) {
+                    next = c;
+                } else if (top < STACK_SIZE) {
+                    stack_x[top] = ref[c];
+                    stack_y[top++] = ref[WIDTH + c];
+                } else {
+                    *flag |= FLAG_OVERFLOW;
+                }
+            }
+            if (next >= 0) {
+                x = ref[next];
+                y = ref[WIDTH + next];
+                continue;
+            }
+        }
+        if (top == 0) break;
+        --top;
+        x = stack_x[top];
+        y = stack_y[top];
+    }
+}
+#endif
 
 #endif

@@ -91,22 +91,7 @@
 #endif
 
 #if WIDE
-/* A wide record's rows (kernels/wide.cl) as vectors, and as lanes. */
-#if WIDTH == 4
-typedef float4 floatw;
-typedef int4 intw;
-#elif WIDTH == 8
-typedef float8 floatw;
-typedef int8 intw;
-#else
-#error "WIDTH must be 4 or 8"
-#endif
-typedef union { floatw v; float s[WIDTH]; } floatw_lanes;
-typedef union { intw v; int s[WIDTH]; } intw_lanes;
-
-/* max_keep and min_keep lane by lane (NaN in x keeps m). */
-inline floatw max_keep_w(floatw x, floatw m) { return x > m ? x : m; }
-inline floatw min_keep_w(floatw x, floatw m) { return x < m ? x : m; }
+#include "wide_slab.h"
 #else
 /* The box and the reference of child k (0 left, 1 right) of binary node x,
  * read from the tree's own nodes (for trees whose wide records would not fit
@@ -226,14 +211,8 @@ __kernel void traverse(__global const float4 *nodes, __global const float *recor
         make_ray(&ray, origins + 3 * i, directions + 3 * i, tmins[i * interval_stride],
                  tmaxs[i * interval_stride]);
 #if WIDE
-        /* The rows of a record holding each axis's near and far planes. */
-        const int near_x = ray.nx ? 1 : 0, near_y = ray.ny == 5 ? 3 : 2, near_z = ray.nz == 6 ? 5 : 4;
-        const int far_x = 1 - near_x, far_y = 5 - near_y, far_z = 9 - near_z;
-        const floatw ox = (floatw)(ray.ox), oy = (floatw)(ray.oy), oz = (floatw)(ray.oz);
-        const floatw ix = (floatw)(ray.ix), iy = (floatw)(ray.iy), iz = (floatw)(ray.iz);
-        /* Rays whose 1/d overflowed (rare) take their own branch of the slab
-         * test, so that the others keep three fewer vectors live. */
-        const int tiny_d = ray.jx != ray.ix || ray.jy != ray.iy || ray.jz != ray.iz;
+        WideRay wray;
+        make_wide_ray(&ray, &wray);
 #endif
         float best = INFINITY, bu = 0.0f, bv = 0.0f;
         int best_slot = -1, flag = 0, visited = 1, tested = 0;
@@ -274,27 +253,10 @@ __kernel void traverse(__global const float4 *nodes, __global const float *recor
                 const float limit = min_keep(best, ray.tmax);
 #if WIDE
                 /* The slab test of slab() for all lanes at once. */
-                __global const floatw *row = (__global const floatw *)records + 8 * x;
-                floatw t0 = (floatw)(ray.tmin);
-                if (tiny_d) {
-                    /* 1/d overflowed on some axis: near planes by jx, jy, jz (make_ray) */
-                    t0 = max_keep_w((row[near_x] - ox) * (floatw)(ray.jx), t0);
-                    t0 = max_keep_w((row[near_y] - oy) * (floatw)(ray.jy), t0);
-                    t0 = max_keep_w((row[near_z] - oz) * (floatw)(ray.jz), t0);
-                } else {
-                    t0 = max_keep_w((row[near_x] - ox) * ix, t0);
-                    t0 = max_keep_w((row[near_y] - oy) * iy, t0);
-                    t0 = max_keep_w((row[near_z] - oz) * iz, t0);
-                }
-                floatw t1 = (floatw)(INFINITY);
-                t1 = min_keep_w((row[far_x] - ox) * ix, t1);
-                t1 = min_keep_w((row[far_y] - oy) * iy, t1);
-                t1 = min_keep_w((row[far_z] - oz) * iz, t1);
                 intw_lanes hit;
-                hit.v = t0 <= min_keep_w(t1, (floatw)(limit)) * SLAB_PAD;
                 floatw_lanes enter, exit;
-                enter.v = t0;
-                exit.v = t1;
+                wide_slab((__global const floatw *)records + 8 * x, &ray, &wray, limit, &hit,
+                          &enter, &exit);
                 /* The lanes hit, nearest first (insertion sort; a later lane
                  * goes before an earlier one of equal entry and exit). */
                 int lane[WIDTH];

@@ -32,7 +32,7 @@ import pyopencl as cl
 from .. import device as dev
 from .rays import InvalidRays, Rays, check_invalid_rays, check_rays, is_device_array
 from .target import QueryTarget
-from .traverse import FLAG_OVERFLOW, FLAG_VISIT_LIMIT, slab_pad, stack_bucket
+from .traverse import FLAG_OVERFLOW, FLAG_VISIT_LIMIT, slab_pad, stack_bucket, stack_need
 
 KERNEL_FILE = "all_hits.cl"
 
@@ -262,22 +262,29 @@ def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None,
          work: np.ndarray | None = None):
     """:func:`run_passes` of kernels/all_hits.cl over the target's tree."""
     tree = target.tree
-    head = (tree.nodes, tree.prim_order, target.mesh.vertices_buf, target.slot_faces(),
-            tree.root, tree.num_nodes)
+    wide = target.wide_records()
+    if wide.packed and work is None:   # the counters count binary nodes (segment_work)
+        head = (tree.nodes, wide.buffer, tree.prim_order, target.mesh.vertices_buf,
+                target.slot_faces(), tree.root, wide.root_x, wide.root_y, tree.num_nodes)
+        return run_passes(target.ctx, KERNEL_FILE, "all_hits", head, stack_need(target), rays,
+                          batch, cap, defines={"WIDE": 1, "WIDTH": wide.width})
+    head = (tree.nodes, tree.nodes, tree.prim_order, target.mesh.vertices_buf,
+            target.slot_faces(), tree.root, tree.root, 0, tree.num_nodes)
     return run_passes(target.ctx, KERNEL_FILE, "all_hits", head, target.traversal_depth(), rays,
                       batch, cap, work=work)
 
 
 def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, depth: int,
                rays: Rays, batch: int, cap: int | None, *, instances: bool = False,
-               work: np.ndarray | None = None):
+               work: np.ndarray | None = None, defines: dict[str, int] | None = None):
     """Count (``cap`` None) or collect (``cap`` -1: all, else at most ``cap`` per ray)
     the hits of every good ray, batch by batch, with a kernel of all_hits.cl's arguments
     (``head``: those before the rays; kernels/instance_hits.cl has them too, with an
     instance column after the triangle's when ``instances``). ``depth``: the deepest
     tree walked (the stack's size). Returns ``(total, flags)`` and, when collecting,
     ``(t, prim, u, v)`` (and ``instance``) in ray order (unsorted within a ray).
-    ``work`` (``int32 (N, 4)``, counting only, all_hits.cl) receives its counters."""
+    ``work`` (``int32 (N, 4)``, counting only, all_hits.cl) receives its counters;
+    ``defines``: more of the kernel's compile-time choices (all_hits.cl's ``WIDE``)."""
     n = len(rays)
     total = np.zeros(n, np.int64)
     flags = np.zeros(n, np.int32)
@@ -286,7 +293,7 @@ def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, dep
     if rays.invalid is not None:
         rays = rays.take(good)
     mem = ctx.memory
-    base = {"STACK_SIZE": stack_bucket(depth + 1), "SLAB_PAD": slab_pad(ctx)}
+    base = {"STACK_SIZE": stack_bucket(depth + 1), "SLAB_PAD": slab_pad(ctx), **(defines or {})}
     # the kernel's columns: t, u, v, prim (and instance); returned as t, prim, u, v, ...
     dtypes = (np.float32, np.float32, np.float32, np.int32) + ((np.int32,) if instances else ())
     lo, hi, stride = rays.kernel_intervals()

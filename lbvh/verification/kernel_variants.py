@@ -143,11 +143,16 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     for stack, count in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
         add(overlap.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count})
     # all_hits.cl: both passes (the count with and without counters), one stack size per
-    # bucket, the slab padding of the device
+    # bucket, the slab padding of the device, through binary nodes and the device's wide
+    # records
     for ctx in ctxs:
         for stack, count in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
             add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count,
                                        "SLAB_PAD": traverse.slab_pad(ctx)})
+            for width in wide.WIDTHS:   # the records' width, as traverse.cl's
+                add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count,
+                                           "SLAB_PAD": traverse.slab_pad(ctx), "WIDE": 1,
+                                           "WIDTH": width})
         for stack in traverse.STACK_BUCKETS:   # segment_work: the counting pass's counters
             add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": 1, "COUNTERS": 1,
                                        "SLAB_PAD": traverse.slab_pad(ctx)})
