@@ -46,6 +46,10 @@ class SceneBuffers:
     ``nodes``. ``nodes``, ``prim_order``, ``vertices``, ``slot_faces``: every mesh's
     tree and faces one after the other, indices offset. ``depth``: the deepest tree
     of both levels (the stack's size). ``exact_leaves``: no mesh has spatial splits.
+    ``forward``: ``float32 (I, 24)`` mesh-to-world transforms for the closest points
+    (kernels/instance_closest.cl): the 12 entries (A row by row, then b) rounded to
+    float32, then the float32 roundings of what they left (with doubles the kernel
+    adds the two: the float64 transform to about 2^-48).
     """
     top: Tree
     inverse: cl.Buffer
@@ -57,6 +61,7 @@ class SceneBuffers:
     slot_faces: cl.Buffer
     depth: int
     exact_leaves: bool = True
+    forward: cl.Buffer | None = None
 
 
 @dataclass
