@@ -22,22 +22,6 @@ typedef float real;
 typedef float3 real3;
 #define to_real3(v) (v)
 #define REAL_INF INFINITY
-/* One step of the best-first walks: of children a and b with squared box distances
- * da and db, the nearer is next (*node, *node_d2) and the farther, if within best2,
- * is pushed with its distance; a push beyond STACK_SIZE sets FLAG_OVERFLOW in *flag
- * (the including file defines both). */
-inline void nearer_child(int a, int b, real da, real db, real best2, int *stack_node,
-                         real *stack_d2, int *top, int *flag, int *node, real *node_d2) {
-    const int nearer = da <= db ? a : b, farther = da <= db ? b : a;
-    const real dnear = da <= db ? da : db, dfar = da <= db ? db : da;
-    if (dfar <= best2) {
-        if (*top < STACK_SIZE) { stack_node[*top] = farther; stack_d2[*top] = dfar; ++*top; }
-        else *flag |= FLAG_OVERFLOW;
-    }
-    *node = nearer;
-    *node_d2 = dnear;
-}
-
 #endif
 
 inline real3 rmax3(real3 a, real3 b) {
