@@ -13,8 +13,13 @@
  * distance from the point to the instances' world boxes (the nearer child
  * first, the farther pushed with its distance, compared again when popped
  * with the best so far); at an instance, a walk of its mesh's tree in which
- * each local node box is bounded in world space by the axis-aligned box of
- * its image (centre M c + t, half-extent |M| h), and each leaf triangle's
+ * each local node box is bounded in world space by the larger of two lower
+ * bounds of the distance to its image: the distance to the axis-aligned box
+ * of the image (centre M c + t, half-extent |M| h) and sigma_min(M) times
+ * the distance in the mesh's space from the point moved there (M^-1 (p - t);
+ * no linear map shrinks a vector by more than its least singular value, and
+ * for a similarity this is the exact distance to the rotated box, so
+ * similarities prune as in the mesh's own space), and each leaf triangle's
  * vertices are moved to world space (M v + t) before the exact
  * point-triangle distance. So distances are world distances for any affine
  * map (shears, non-uniform scales, reflections), and the barycentrics of the
@@ -22,14 +27,16 @@
  * map keeps them). The best distance found in any instance bounds the walk
  * of every other.
  *
- * The forward transforms: 24 floats per instance, the 12 entries of (M row
- * by row, then t) rounded to float32 (hi) and the 12 float32 roundings of
- * what hi left (lo); with doubles (closest_point.h's `real`) the kernel
- * uses hi + lo, the float64 transform to about 2^-48 of each entry, so the
- * world vertices are the float64 transform's of the float32 mesh vertices
- * up to double rounding (without doubles: hi, in float32). A world box
- * rounded smaller than the image's by that rounding can only cost a
- * triangle nearer by less than the rounding.
+ * The placements: PLACEMENT_FLOATS = 49 floats per instance
+ * (lbvh/queries/instances.py, SceneBuffers.placements): the 12 entries of
+ * (M row by row, then t) rounded to float32 (hi) and the 12 float32
+ * roundings of what hi left (lo); the same 24 of the inverse (M^-1 row by
+ * row, then -M^-1 t); sigma_min(M)^2 rounded down. With doubles
+ * (closest_point.h's `real`) the kernel uses hi + lo, the float64 transform
+ * to about 2^-48 of each entry, so the world vertices are the float64
+ * transform's of the float32 mesh vertices up to double rounding (without
+ * doubles: hi, in float32). A bound rounded above the true distance by that
+ * rounding can only cost a triangle nearer by less than the rounding.
  *
  * Results: distance, the closest point (3 floats), the triangle (prim_order's
  * numbering: within its mesh, or its face_ids number), the instance (its
@@ -58,46 +65,67 @@
 
 #include "closest_point.h"
 
-/* An instance's forward transform (object to world) and its entries' magnitudes:
- * m = (M row by row, t), a = |M|. 21 reals: only ever passed by pointer. */
+/* An instance's placement, read from PLACEMENT_FLOATS floats (the layout of the
+ * header): m = (M row by row, t) object to world, a = |M|, inv = (M^-1 row by row,
+ * -M^-1 t) world to object, s2 = sigma_min(M)^2 rounded down. 35 reals: only ever
+ * passed by pointer. */
+#define PLACEMENT_FLOATS 49
 typedef struct {
     real m[12];
     real a[9];
+    real inv[12];
+    real s2;
 } Placement;
 
-inline void load_placement(__global const float *forward, int inst, Placement *x) {
-    __global const float *f = forward + 24 * inst;
-    for (int k = 0; k < 12; ++k) {
+/* Entry k of the 12 of a (hi, lo) pair of float32 rows: hi + lo with doubles. */
+inline real pair_entry(__global const float *f, int k) {
 #if defined(cl_khr_fp64) && !defined(NO_FP64)
-        x->m[k] = (real)f[k] + (real)f[12 + k];
+    return (real)f[k] + (real)f[12 + k];
 #else
-        x->m[k] = f[k];
+    return f[k];
 #endif
-    }
-    for (int k = 0; k < 9; ++k) x->a[k] = fabs(x->m[k]);
 }
 
-/* M v + t */
-inline real3 to_world(const Placement *x, real3 v) {
-    const real *m = x->m;
+inline void load_placement(__global const float *placements, int inst, Placement *x) {
+    __global const float *f = placements + PLACEMENT_FLOATS * inst;
+    for (int k = 0; k < 12; ++k) {
+        x->m[k] = pair_entry(f, k);
+        x->inv[k] = pair_entry(f + 24, k);
+    }
+    for (int k = 0; k < 9; ++k) x->a[k] = fabs(x->m[k]);
+    x->s2 = f[48];
+}
+
+/* m v + t of the 12 entries m (M row by row, t) */
+inline real3 affine(const real *m, real3 v) {
     return (real3)(m[0] * v.x + m[1] * v.y + m[2] * v.z + m[9],
                    m[3] * v.x + m[4] * v.y + m[5] * v.z + m[10],
                    m[6] * v.x + m[7] * v.y + m[8] * v.z + m[11]);
 }
 
-/* Squared distance from the world point p to the world box of local node `node`:
- * the axis-aligned box of the node box's image, centre M c + t, half-extent |M| h. */
-inline real world_box_distance2(const Placement *x, real3 p, __global const float4 *nodes,
-                                int node) {
+/* M v + t */
+inline real3 to_world(const Placement *x, real3 v) { return affine(x->m, v); }
+
+/* A lower bound of the squared world distance from the world point p (local_p: moved
+ * into the mesh's space) to the image of local node `node`'s box: the larger of two,
+ * the squared distance to the axis-aligned box of the image (centre M c + t,
+ * half-extent |M| h) and sigma_min(M)^2 times the squared distance in the mesh's
+ * space (no map shrinks a vector by more than its least singular value; for a
+ * similarity this is the exact distance to the image of the box). */
+inline real world_box_distance2(const Placement *x, real3 p, real3 local_p,
+                                __global const float4 *nodes, int node) {
     const real one_half = (real)0.5;
-    const real3 lo = to_real3(nodes[2 * node].xyz), hi = to_real3(nodes[2 * node + 1].xyz);
+    const float3 flo = nodes[2 * node].xyz, fhi = nodes[2 * node + 1].xyz;
+    const real3 lo = to_real3(flo), hi = to_real3(fhi);
     const real3 c = lo * one_half + hi * one_half, h = hi * one_half - lo * one_half;
     const real3 wc = to_world(x, c);
     const real *a = x->a;
     const real3 wh = (real3)(a[0] * h.x + a[1] * h.y + a[2] * h.z,
                              a[3] * h.x + a[4] * h.y + a[5] * h.z,
                              a[6] * h.x + a[7] * h.y + a[8] * h.z);
-    return real_box_distance2(p, wc - wh, wc + wh);
+    const real world = real_box_distance2(p, wc - wh, wc + wh);
+    const real in_mesh = x->s2 * box_distance2(local_p, flo, fhi);
+    return world > in_mesh ? world : in_mesh;
 }
 
 /* The world vertices of slot s's triangle. */
@@ -123,7 +151,8 @@ inline void walk_instance(__global const float4 *nodes, __global const float *ve
     int stack_node[STACK_SIZE];
     real stack_d2[STACK_SIZE];
     int top = 0, node = root, visits = 0;
-    real node_d2 = world_box_distance2(x, p, nodes, root);
+    const real3 local_p = affine(x->inv, p);
+    real node_d2 = world_box_distance2(x, p, local_p, nodes, root);
     for (;;) {
         if (node >= 0 && node_d2 <= best->best2) {
             if (visits++ >= num_nodes) {
@@ -145,8 +174,8 @@ inline void walk_instance(__global const float4 *nodes, __global const float *ve
                 }
                 node = -1;
             } else {
-                nearer_child(a, b, world_box_distance2(x, p, nodes, a),
-                             world_box_distance2(x, p, nodes, b), best->best2, stack_node,
+                nearer_child(a, b, world_box_distance2(x, p, local_p, nodes, a),
+                             world_box_distance2(x, p, local_p, nodes, b), best->best2, stack_node,
                              stack_d2, &top, &best->flag, &node, &node_d2);
             }
             continue;
@@ -160,7 +189,7 @@ inline void walk_instance(__global const float4 *nodes, __global const float *ve
 
 __kernel void instance_closest(__global const float4 *top_nodes, __global const int *top_order,
                                const int top_root, const int top_num_nodes,
-                               __global const float *forward, __global const int *inst_root,
+                               __global const float *placements, __global const int *inst_root,
                                __global const float4 *nodes, const int num_nodes,
                                __global const int *prim_order, __global const float *vertices,
                                __global const uint *slot_faces,
@@ -197,7 +226,7 @@ __kernel void instance_closest(__global const float4 *top_nodes, __global const 
                 for (int s = a; s < a - b; ++s) {
                     const int inst = top_order[s];
                     Placement x;
-                    load_placement(forward, inst, &x);
+                    load_placement(placements, inst, &x);
                     walk_instance(nodes, vertices, slot_faces, inst_root[inst], num_nodes, &x,
                                   inst, p, &best);
                 }
@@ -218,7 +247,7 @@ __kernel void instance_closest(__global const float4 *top_nodes, __global const 
 
     if (best.slot >= 0) {
         Placement x;
-        load_placement(forward, best.inst, &x);
+        load_placement(placements, best.inst, &x);
         real3 p0, p1, p2;
         world_triangle(&x, vertices, slot_faces, best.slot, &p0, &p1, &p2);
         const real3 q = p0 + best.v * (p1 - p0) + best.w * (p2 - p0);

@@ -45,7 +45,7 @@ from .mesh import real_array
 from .queries.closest import check_points
 from .queries.instance_closest import SceneClosest, closest_scene_points
 from .queries.instance_hits import DEFAULT_BATCH, SceneAllHits, all_scene_hits, count_scene_hits
-from .queries.instances import SceneBuffers, SceneHits, intersect_scene
+from .queries.instances import SceneBuffers, SceneHits, intersect_scene, placement_rows
 from .queries.rays import InvalidRays
 from .tree import Mesh
 
@@ -208,23 +208,20 @@ class Scene:
         f = np.arange(len(v), dtype=np.uint32).reshape(-1, 3)
         mesh = Mesh.upload(self.ctx, v, f)
         self.top = BVH(mesh, build_tree(self.ctx, mesh, LBVHOptions()))
-        forward = np.concatenate([a.reshape(-1, 9), b], axis=1)
-        hi = forward.astype(np.float32)
-        lo = (forward - hi).astype(np.float32)   # what float32 left: hi + lo is float64's
-        olds = [getattr(self, "_inverse", None), getattr(self, "_forward", None)]
+        olds = [getattr(self, "_inverse", None), getattr(self, "_placements", None)]
         self._inverse = self.ctx.memory.upload(inverse.astype(np.float32))
-        self._forward = self.ctx.memory.upload(np.concatenate([hi, lo], axis=1))
+        self._placements = self.ctx.memory.upload(placement_rows(transforms))
         for old in olds:
             if old is not None:
                 self._owned.remove(old)
                 self.ctx.memory.free(old)
-        self._owned += [self._inverse, self._forward]
+        self._owned += [self._inverse, self._placements]
 
     def _buffers(self) -> SceneBuffers:
         return SceneBuffers(self.top.tree, self._inverse, self._inst_root, self._nodes,
                             self._num_nodes, self._prim_order, self._vertices, self._slot_faces,
                             max(self._mesh_depth, self.top.traversal_depth()),
-                            not any(m.tree.clipped_leaves for m in self.meshes), self._forward)
+                            not any(m.tree.clipped_leaves for m in self.meshes), self._placements)
 
     # -- what it holds -------------------------------------------------------------
     @property

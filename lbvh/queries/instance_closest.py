@@ -3,7 +3,7 @@
 
 :meth:`lbvh.Scene.closest_points` calls :func:`closest_scene_points` with the
 scene's device data (:class:`lbvh.queries.instances.SceneBuffers`, whose
-``forward`` holds the object-to-world transforms). The kernel answers each
+``placements`` holds the transforms both ways). The kernel answers each
 point in world space for any invertible affine placement (rotations,
 reflections, shears, non-uniform scales): a best-first walk of the top level
 by the distance to the instances' world boxes and, at an instance, of its
@@ -114,8 +114,8 @@ def closest_scene_points(ctx: dev.Context, buffers: SceneBuffers, ids: np.ndarra
     if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
             or batch_size < 1:
         raise ValueError(f"batch_size: {batch_size!r}; expected a positive integer")
-    if buffers.forward is None:
-        raise ValueError("buffers: no forward transforms (SceneBuffers.forward)")
+    if buffers.placements is None:
+        raise ValueError("buffers: no placements (SceneBuffers.placements)")
     n = len(p)
     out = {"distance": np.empty(n, np.float32), "points": np.empty((n, 3), np.float32),
            "prim": np.empty(n, np.int32), "instance": np.empty(n, np.int32),
@@ -138,7 +138,7 @@ def closest_scene_points(ctx: dev.Context, buffers: SceneBuffers, ids: np.ndarra
                 order, ups = point_order(ctx, bufs["points"], m, *top.root_box())
             launch = dev.Launch(m, 1, -(-m // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
             ev = dev.run(ctx, KERNEL_FILE, "instance_closest", launch, top.nodes, top.prim_order,
-                         top.root, top.num_nodes, buffers.forward, buffers.inst_root,
+                         top.root, top.num_nodes, buffers.placements, buffers.inst_root,
                          buffers.nodes, buffers.num_nodes, buffers.prim_order, buffers.vertices,
                          buffers.slot_faces, bufs["points"],
                          order if order is not None else bufs["flags"], limit, m,
