@@ -114,7 +114,7 @@ inline real3 to_world(const Placement *x, real3 v) { return affine(x->m, v); }
  * similarity this is the exact distance to the image of the box). */
 inline real world_box_distance2(const Placement *x, real3 p, real3 local_p,
                                 __global const float4 *nodes, int node) {
-    const real one_half = (real)0.5;
+    const real one_half = (real)0.5f;   /* exact: no double constant without fp64 */
     const float3 flo = nodes[2 * node].xyz, fhi = nodes[2 * node + 1].xyz;
     const real3 lo = to_real3(flo), hi = to_real3(fhi);
     const real3 c = lo * one_half + hi * one_half, h = hi * one_half - lo * one_half;
