@@ -7,7 +7,8 @@
  * first and the farther pushed with its box distance, which is compared again
  * when it is popped (a branch-and-bound search, as in Ericson 2005, 6.1).
  *
- * Point-triangle distance: Ericson 2005, Real-Time Collision Detection,
+ * Point-triangle distance (kernels/closest_point.h, which
+ * kernels/instance_closest.cl shares): Ericson 2005, Real-Time Collision Detection,
  * section 5.1.5 (ClosestPtPointTriangle): the Voronoi region of the point
  * (three vertices, three edges, the face) is found from six dot products, and
  * the closest point is a vertex, the projection on an edge, or the projection
@@ -39,83 +40,11 @@
 
 #define FLAG_OVERFLOW 1
 
+#include "closest_point.h"
+
 #ifndef POINT_ORDER
 #define POINT_ORDER 0
 #endif
-
-#if defined(cl_khr_fp64) && !defined(NO_FP64)
-#pragma OPENCL EXTENSION cl_khr_fp64 : enable
-typedef double real;
-typedef double3 real3;
-#define to_real3(v) convert_double3(v)
-#define REAL_INF ((double)INFINITY)
-#else
-typedef float real;
-typedef float3 real3;
-#define to_real3(v) (v)
-#define REAL_INF INFINITY
-#endif
-
-inline real3 rmax3(real3 a, real3 b) {
-    return (real3)(a.x > b.x ? a.x : b.x, a.y > b.y ? a.y : b.y, a.z > b.z ? a.z : b.z);
-}
-
-/* Squared distance from p to the box [lo, hi]: 0 inside. */
-inline real box_distance2(real3 p, float3 lo, float3 hi) {
-    const real3 zero = (real3)(0, 0, 0);
-    const real3 d = rmax3(rmax3(to_real3(lo) - p, p - to_real3(hi)), zero);
-    return d.x * d.x + d.y * d.y + d.z * d.z;
-}
-
-inline real length2(real3 v) { return v.x * v.x + v.y * v.y + v.z * v.z; }
-
-inline real clamp01(real t) { return t < 0 ? 0 : (t > 1 ? 1 : t); }
-
-/* Closest point on segment [a, b] to p: parameter t in [0, 1] (Ericson 5.1.2). */
-inline real segment_t(real3 p, real3 a, real3 b) {
-    const real3 ab = b - a;
-    const real len2 = dot(ab, ab);
-    return len2 > 0 ? clamp01(dot(p - a, ab) / len2) : 0;
-}
-
-/* The closest point of triangle (a, b, c) to p as barycentrics (v, w):
- * q = a + v (b - a) + w (c - a) = (1 - v - w) a + v b + w c. */
-inline void closest_on_triangle(real3 p, real3 a, real3 b, real3 c, real *out_v, real *out_w) {
-    const real3 ab = b - a, ac = c - a, ap = p - a;
-    const real d1 = dot(ab, ap), d2 = dot(ac, ap);
-    if (d1 <= 0 && d2 <= 0) { *out_v = 0; *out_w = 0; return; }                    /* vertex a */
-    const real3 bp = p - b;
-    const real d3 = dot(ab, bp), d4 = dot(ac, bp);
-    if (d3 >= 0 && d4 <= d3) { *out_v = 1; *out_w = 0; return; }                   /* vertex b */
-    const real vc = d1 * d4 - d3 * d2;
-    if (vc <= 0 && d1 >= 0 && d3 <= 0 && d1 - d3 > 0) {                            /* edge ab */
-        *out_v = d1 / (d1 - d3); *out_w = 0; return;
-    }
-    const real3 cp = p - c;
-    const real d5 = dot(ab, cp), d6 = dot(ac, cp);
-    if (d6 >= 0 && d5 <= d6) { *out_v = 0; *out_w = 1; return; }                   /* vertex c */
-    const real vb = d5 * d2 - d1 * d6;
-    if (vb <= 0 && d2 >= 0 && d6 <= 0 && d2 - d6 > 0) {                            /* edge ac */
-        *out_v = 0; *out_w = d2 / (d2 - d6); return;
-    }
-    const real va = d3 * d6 - d5 * d4;
-    if (va <= 0 && (d4 - d3) >= 0 && (d5 - d6) >= 0 && (d4 - d3) + (d5 - d6) > 0) { /* bc */
-        const real w = (d4 - d3) / ((d4 - d3) + (d5 - d6));
-        *out_v = 1 - w; *out_w = w; return;
-    }
-    /* the face; then the safeguards of the header */
-    const real denom = va + vb + vc;
-    real v = denom > 0 ? clamp01(vb / denom) : 0, w = denom > 0 ? clamp01(vc / denom) : 0;
-    if (v + w > 1) { const real s = v + w; v /= s; w /= s; }
-    real best = denom > 0 ? length2(p - (a + v * ab + w * ac)) : REAL_INF;
-    const real tab = segment_t(p, a, b), tac = segment_t(p, a, c), tbc = segment_t(p, b, c);
-    const real dab = length2(p - (a + tab * ab)), dac = length2(p - (a + tac * ac));
-    const real dbc = length2(p - (b + tbc * (c - b)));
-    if (dab < best) { best = dab; v = tab; w = 0; }
-    if (dac < best) { best = dac; v = 0; w = tac; }
-    if (dbc < best) { v = 1 - tbc; w = tbc; }
-    *out_v = v; *out_w = w;
-}
 
 /* Query i: points[3i..]; results: distance, the closest point (3 floats),
  * triangle (original numbering, -1 when nothing is within max_distance),
@@ -167,14 +96,8 @@ __kernel void closest_points(__global const float4 *nodes, __global const int *p
             } else {
                 const real da = box_distance2(p, nodes[2 * a].xyz, nodes[2 * a + 1].xyz);
                 const real db = box_distance2(p, nodes[2 * b].xyz, nodes[2 * b + 1].xyz);
-                const int nearer = da <= db ? a : b, farther = da <= db ? b : a;
-                const real dnear = da <= db ? da : db, dfar = da <= db ? db : da;
-                if (dfar <= best2) {
-                    if (top < STACK_SIZE) { stack_node[top] = farther; stack_d2[top] = dfar; ++top; }
-                    else flag |= FLAG_OVERFLOW;
-                }
-                node = nearer;
-                node_d2 = dnear;
+                nearer_child(a, b, da, db, best2, stack_node, stack_d2, &top, &flag, &node,
+                             &node_d2);
             }
             continue;
         }

@@ -9,20 +9,7 @@
 #define LBVH_INSTANCE_RAY_H
 #include "ray_triangle.h"
 
-/* The meshes' trees sit in up to four node buffers ("chunks"), each within the
- * device's largest allocation (a mesh in parts passes it; lbvh/scene.py):
- * inst_root[i] holds instance i's chunk in its bits ROOT_BITS.. and the root
- * node within that chunk below them. */
-#define ROOT_BITS 28
-
-inline __global const float4 *chunk_nodes(int r, __global const float4 *n0,
-                                          __global const float4 *n1, __global const float4 *n2,
-                                          __global const float4 *n3) {
-    const int c = r >> ROOT_BITS;
-    return c == 0 ? n0 : (c == 1 ? n1 : (c == 2 ? n2 : n3));
-}
-
-inline int chunk_root(int r) { return r & ((1 << ROOT_BITS) - 1); }
+#include "scene_chunks.h"
 
 /* *moved: the world ray w (ox, oy, oz, dx, dy, dz as given) moved by the inverse
  * transform m, over [tmin, tmax], prepared (prepare_ray). Returns 0, with

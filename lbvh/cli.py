@@ -249,7 +249,7 @@ def _read_rays(path: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 #: ``lbvh query`` kinds: what each reads, and the arrays it writes for one mesh (a file of
-#: placed meshes adds ``instance``; its closest points have no ``u, v``).
+#: placed meshes adds ``instance``).
 QUERY_KINDS = {
     "closest": ("points", "distance, points, prim, u, v, found"),
     "signed-distance": ("points", "signed_distance"),
@@ -269,15 +269,14 @@ def _run_query(bvh: Any, kind: str, data: Any, args: argparse.Namespace
                ) -> tuple[dict[str, np.ndarray], dict[str, Any], list[str]]:
     """The query's arrays (for OUT.npz), its summary fields and its summary lines. A
     file of placed meshes is asked through its :class:`lbvh.Scene` (the instance of each
-    answer in an ``instance`` array; what a scene refuses, e.g. closest points under a
-    shear, is refused with the scene's message)."""
+    answer in an ``instance`` array; what a scene refuses is refused with the scene's
+    message)."""
     scene = isinstance(bvh, LbvhScene)
     if kind == "closest":
         if scene:
-            distance, points, instance, prim = bvh.closest_points(data,
-                                                                  max_distance=args.max_distance)
-            arrays = {"distance": distance, "points": points, "prim": prim, "instance": instance,
-                      "found": instance >= 0}
+            got = bvh.closest_points(data, max_distance=args.max_distance)
+            arrays = {"distance": got.distance, "points": got.points, "prim": got.prim,
+                      "u": got.u, "v": got.v, "instance": got.instance, "found": got.found}
         else:
             got = bvh.closest_points(data, max_distance=args.max_distance)
             arrays = {"distance": got.distance, "points": got.points, "prim": got.prim,

@@ -17,6 +17,10 @@ report the instance (index and id), the mesh, the triangle within it and
 :meth:`Scene.count_hits` and :meth:`Scene.all_hits` count or list every hit
 of each ray as :meth:`lbvh.BVH.count_hits` and :meth:`lbvh.BVH.all_hits` do,
 each hit with its instance (:class:`lbvh.queries.instance_hits.SceneAllHits`).
+:meth:`Scene.closest_points` answers point queries in world space for any
+invertible affine placement (:mod:`lbvh.queries.instance_closest`), and
+:meth:`Scene.signed_distance` with it; :meth:`Scene.winding_numbers` sums each
+instance's mesh's.
 :meth:`Scene.set_transforms` moves instances: only the top level is built
 again (milliseconds), never a mesh. :meth:`Scene.flattened` gives the one
 mesh the scene stands for (every instance's vertices transformed), what the
@@ -39,9 +43,10 @@ from .bvh import BVH
 from .layout import NODE_DTYPE, is_leaf
 from .mesh import real_array
 from .queries.closest import check_points
+from .queries.instance_closest import SceneClosest, closest_scene_points
 from .queries.instance_hits import DEFAULT_BATCH, SceneAllHits, all_scene_hits, count_scene_hits
 from .queries.instances import (NODE_CHUNKS, ROOT_BITS, SceneBuffers, SceneHits, intersect_scene,
-                                node_chunks)
+                                node_chunks, placement_rows)
 from .queries.rays import InvalidRays
 from .tree import Mesh
 
@@ -213,21 +218,23 @@ class Scene:
         # whose box is the instance's world box and whose centre is the box's.
         v = np.stack([wlo, whi, whi], axis=1).reshape(-1, 3)
         f = np.arange(len(v), dtype=np.uint32).reshape(-1, 3)
-        old = getattr(self, "_inverse", None)
         mesh = Mesh.upload(self.ctx, v, f)
         self.top = BVH(mesh, build_tree(self.ctx, mesh, LBVHOptions()))
+        olds = [getattr(self, "_inverse", None), getattr(self, "_placements", None)]
         self._inverse = self.ctx.memory.upload(inverse.astype(np.float32))
-        if old is not None:
-            self._owned.remove(old)
-            self.ctx.memory.free(old)
-        self._owned.append(self._inverse)
+        self._placements = self.ctx.memory.upload(placement_rows(transforms))
+        for old in olds:
+            if old is not None:
+                self._owned.remove(old)
+                self.ctx.memory.free(old)
+        self._owned += [self._inverse, self._placements]
 
     def _buffers(self) -> SceneBuffers:
         nodes = tuple(self._chunks[min(k, len(self._chunks) - 1)] for k in range(NODE_CHUNKS))
         return SceneBuffers(self.top.tree, self._inverse, self._inst_root, nodes,
                             self._num_nodes, self._prim_order, self._vertices, self._slot_faces,
                             max(self._mesh_depth, self.top.traversal_depth()),
-                            not any(m.tree.clipped_leaves for m in self.meshes))
+                            not any(m.tree.clipped_leaves for m in self.meshes), self._placements)
 
     # -- what it holds -------------------------------------------------------------
     @property
@@ -353,85 +360,38 @@ class Scene:
         return np.where(instance >= 0, base[np.maximum(instance, 0)] + prim, -1)
 
     # -- point queries -------------------------------------------------------------
-    def _similarity_scales(self, what: str) -> np.ndarray:
-        """``float64 (I,)``: each instance's scale, where every transform is a similarity
-        (a rotation or reflection times one scale, plus a translation), else a
-        ``ValueError``: other transforms do not keep distances in proportion."""
-        a = self._transforms[:, :, :3]
-        gram = np.einsum("ikj,ikl->ijl", a, a)                 # A^T A = s^2 I for a similarity
-        s2 = np.trace(gram, axis1=1, axis2=2) / 3
-        off = np.abs(gram - s2[:, None, None] * np.eye(3)).max(axis=(1, 2))
-        bad = off > 1e-6 * s2
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise ValueError(f"{what}: instance {i} is not placed by a rotation, reflection and "
-                             "one scale (a shear or non-uniform scale changes distances); "
-                             "flatten the scene (scene.flattened()) for this query")
-        return np.sqrt(s2)
+    def closest_points(self, points: Any, max_distance: float = np.inf, *,
+                       batch_size: int = 1 << 20) -> SceneClosest:
+        """The closest point of the scene to each point within ``max_distance``, in world
+        space, for any invertible affine placements (shears, non-uniform scales and
+        reflections too): one device kernel walks the top level and each instance's
+        mesh tree with the node boxes and triangles moved to world space
+        (:mod:`lbvh.queries.instance_closest`).
 
-    @dev.serialised
-    def closest_points(self, points: Any, max_distance: float = np.inf) -> tuple[np.ndarray, ...]:
-        """The closest point of the scene to each point within ``max_distance``, for scenes
-        whose instances are placed by similarities (rotations, reflections, one scale per
-        instance, translations): each instance's mesh answers the point moved into its
-        space (:meth:`lbvh.BVH.closest_points`), its distance scaled back, and the
-        nearest wins; an instance whose world box is farther than the best so far is
-        skipped.
+        Error bound: against the float64 brute force over :meth:`flattened`'s triangles
+        (:func:`lbvh.queries.closest.closest_points_numpy`), ``|distance - d_ref|`` is
+        within :func:`lbvh.verification.error_bound.scene_closest_distance_bound` of the
+        flattened vertices and the points: the mesh's bound (4 units of float32
+        rounding of ``|p| + max |vertex|``) plus one unit of ``max |vertex|`` for the
+        flattened copy's own rounding of its world vertices to float32 (the kernel
+        transforms the float32 mesh vertices in double). Where two triangles are equally
+        near within it (overlapping instances), either may be named.
 
         Returns:
+            :class:`lbvh.queries.instance_closest.SceneClosest`, which unpacks as
             ``(distance float32 (N,), points float32 (N, 3), instance int32 (N,),
             prim int32 (N,))``: ``inf``, NaN, ``-1`` and ``-1`` where nothing is within
             ``max_distance``; ``prim`` is the triangle within the instance's mesh (or its
-            ``face_ids`` number).
-        """
-        scale = self._similarity_scales("closest_points")
-        p = check_points(points).astype(np.float64)
-        n = len(p)
-        try:
-            limit = float(max_distance)
-        except (TypeError, ValueError):
-            limit = float("nan")
-        if not limit >= 0:
-            raise ValueError(f"max_distance: {max_distance!r}; expected a number >= 0 or inf")
-        best = np.full(n, limit)
-        where = np.full((n, 3), np.nan)
-        inst = np.full(n, -1, np.int32)
-        prim = np.full(n, -1, np.int32)
-        lo, hi = self._world_boxes()
-        a, b = self._transforms[:, :, :3], self._transforms[:, :, 3]
-        inv = np.linalg.inv(a)
-        for i in np.argsort(scale):   # any order is right; this one tends to prune early
-            gap = np.maximum(np.maximum(lo[i] - p, p - hi[i]), 0)
-            near = np.flatnonzero(np.sqrt((gap * gap).sum(axis=1)) <= best)
-            if not len(near):
-                continue
-            mesh = self.meshes[self.mesh_of[i]]
-            local = (p[near] - b[i]) @ inv[i].T
-            got = mesh.closest_points(local.astype(np.float32),
-                                      max_distance=float(np.max(best[near]) / scale[i]))
-            d = got.distance.astype(np.float64) * scale[i]
-            better = got.found & (d < best[near])
-            k = near[better]
-            best[k] = d[better]
-            where[k] = got.points[better].astype(np.float64) @ a[i].T + b[i]
-            inst[k] = i
-            ids = got.prim[better]
-            prim[k] = ids if self.face_ids is None else self.face_ids[self.mesh_of[i]][ids]
-        found = inst >= 0
-        distance = np.where(found, best, np.inf).astype(np.float32)
-        return distance, where.astype(np.float32), inst, prim
+            ``face_ids`` number). Its attributes add ``u``, ``v`` (barycentrics on that
+            triangle, in mesh or world space alike), ``id`` and ``mesh``.
 
-    def _world_boxes(self) -> tuple[np.ndarray, np.ndarray]:
-        """``float32 (I, 3)`` corners of the instances' world boxes (the top level's)."""
-        top = self.top
-        leaf = top.is_leaf
-        first = top.prim_range[:, 0]
-        lo = np.empty((self.num_instances, 3), np.float32)
-        hi = np.empty((self.num_instances, 3), np.float32)
-        slots = first[leaf]
-        inst = np.asarray(top.prim_order)[slots]
-        lo[inst], hi[inst] = top.lower[leaf], top.upper[leaf]
-        return lo, hi
+        Raises:
+            ValueError: a bad point (named) or ``max_distance``.
+            RuntimeError: a traversal stack overflowed (never silently short).
+        """
+        with self.ctx.lock:
+            return closest_scene_points(self.ctx, self._buffers(), self.ids, self.mesh_of,
+                                        points, max_distance, batch_size=batch_size)
 
     @dev.serialised
     def winding_numbers(self, points: Any) -> np.ndarray:
@@ -456,8 +416,10 @@ class Scene:
         return self.winding_numbers(points) > 0.5
 
     def signed_distance(self, points: Any) -> np.ndarray:
-        """``float32 (N,)``: the distance to the scene (:meth:`closest_points`), negative
-        inside (:meth:`contains`)."""
+        """``float32 (N,)``: the distance to the scene (:meth:`closest_points`, in world
+        space for any affine placement), negative inside (:meth:`contains`: the sign is
+        exact where the winding numbers are, so for closed meshes under any placement,
+        for open ones under similarities)."""
         distance = self.closest_points(points)[0]
         return np.where(self.contains(points), -distance, distance)
 

@@ -235,12 +235,23 @@ ROWS: list[Row] = [
         ValueError, "item 1 is a str"),
     Row("lbvh.Scene", "a singular transform", lambda e: lbvh.Scene([e.bvh], [0], np.zeros((1, 3, 4))),
         ValueError, "instance 0 is singular"),
-    Row("lbvh.Scene.closest_points", "a sheared instance", lambda e: lbvh.Scene(
+    # scene.closest_points: the checks of a mesh's; a shear answers (in world space)
+    Row("lbvh.Scene.closest_points", "a sheared instance (answers)", lambda e: lbvh.Scene(
         [e.bvh], [0], np.array([[[1, 0.5, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]])).closest_points(e.o),
-        ValueError, "instance 0 is not placed by a rotation"),
+        None),
     Row("lbvh.Scene.closest_points", "negative max_distance", lambda e: lbvh.Scene(
         [e.bvh], [0], np.eye(3, 4)[None]).closest_points(e.o, max_distance=-1), ValueError,
         "max_distance: -1"),
+    Row("lbvh.Scene.closest_points", "NaN max_distance", lambda e: _scene_of(e).closest_points(
+        e.o, max_distance=float("nan")), ValueError, "max_distance: nan"),
+    Row("lbvh.Scene.closest_points", "NaN point", lambda e: _scene_of(e).closest_points(
+        _rays(e, o=(2, 1, np.nan))[0]), ValueError, "point 2 has a NaN"),
+    Row("lbvh.Scene.closest_points", "points of shape (N, 2)", lambda e: _scene_of(e).closest_points(
+        e.o[:, :2]), ValueError, "shape (64, 2)"),
+    Row("lbvh.Scene.closest_points", "batch_size=0", lambda e: _scene_of(e).closest_points(
+        e.o, batch_size=0), ValueError, "batch_size: 0"),
+    Row("lbvh.Scene.closest_points", "no points", lambda e: _scene_of(e).closest_points(
+        np.zeros((0, 3))), None),
     Row("lbvh.build", "a trimesh.PointCloud", lambda e: _b(e, __import__("trimesh").PointCloud(e.v)),
         ValueError, "has vertices but no faces"),
     Row("lbvh.build", "a mesh and its faces", lambda e: _b(

@@ -443,8 +443,7 @@ def test_a_file_of_placed_meshes_keeps_its_instances(capsys, tmp_path):
 
 def test_query_through_a_file_of_placed_meshes(capsys, tmp_path):
     """lbvh query on a glTF that places meshes answers through its lbvh.Scene, naming the
-    instance of each answer; what a scene refuses (closest points under a shear) is
-    refused in one line."""
+    instance of each answer, closest points under a shear too."""
     import lbvh
     from lbvh.rendering.scene import load_scene
     path = tmp_path / "two.glb"
@@ -461,10 +460,12 @@ def test_query_through_a_file_of_placed_meshes(capsys, tmp_path):
     assert main(["query", "closest", str(path), str(tmp_path / "p.npy"), "-o", str(out)]) == 0
     text = capsys.readouterr().out
     assert "3 instances of 2 meshes" in text and "instance" in text.split("wrote:")[1]
-    distance, near, instance, prim = scene.closest_points(points)
+    closest = scene.closest_points(points)
+    distance, near, instance, prim = closest
     with np.load(out) as got:
         for name, want in (("distance", distance), ("points", near), ("instance", instance),
-                           ("prim", prim), ("found", instance >= 0)):
+                           ("prim", prim), ("u", closest.u), ("v", closest.v),
+                           ("found", instance >= 0)):
             assert np.array_equal(got[name], want), name
     assert set(np.unique(instance)) == {0, 1, 2}
     for kind, name, want in (("signed-distance", "signed_distance", scene.signed_distance(points)),
@@ -489,8 +490,8 @@ def test_query_through_a_file_of_placed_meshes(capsys, tmp_path):
     with np.load(out) as got:
         for name in ("offsets", "t", "prim", "instance", "u", "v", "total"):
             assert np.array_equal(got[name], getattr(want, name)), name
-    # a sheared instance keeps no distances in proportion: closest points are refused, in
-    # one line, exit 2; the ray queries and the winding numbers still answer
+    # a sheared instance keeps no distances in proportion: closest points answer in world
+    # space all the same (the flattened copy's, within the scene's bound)
     import trimesh
     sheared = trimesh.Scene()
     sheared.add_geometry(trimesh.creation.box(), geom_name="box", node_name="plain")
@@ -499,8 +500,18 @@ def test_query_through_a_file_of_placed_meshes(capsys, tmp_path):
     sheared.add_geometry(trimesh.creation.box(), geom_name="box2", node_name="sheared",
                          transform=shear)
     sheared.export(str(tmp_path / "sheared.glb"))
-    code = main(["query", "closest", str(tmp_path / "sheared.glb"), str(tmp_path / "p.npy")])
-    _assert_one_line_error(code, capsys.readouterr().err, "is not placed by a rotation")
+    assert main(["query", "closest", str(tmp_path / "sheared.glb"), str(tmp_path / "p.npy"),
+                 "-o", str(out)]) == 0
+    from lbvh.queries.closest import closest_points_numpy
+    from lbvh.verification.error_bound import scene_closest_distance_bound
+    sheared_scene = lbvh.build(load_scene(tmp_path / "sheared.glb").extras["instances"])
+    assert sheared_scene.num_instances == 2
+    sv, sf, _ = sheared_scene.flattened()
+    with np.load(out) as got:
+        assert np.array_equal(got["distance"], sheared_scene.closest_points(points).distance)
+        assert (np.abs(got["distance"] - closest_points_numpy(sv, sf, points)[0])
+                <= scene_closest_distance_bound(sv, points)).all()
+        assert set(np.unique(got["instance"])) == {0, 1}
     assert main(["query", "count-hits", str(tmp_path / "sheared.glb"),
                  str(tmp_path / "rays.npy")]) == 0
     assert main(["query", "contains", str(tmp_path / "sheared.glb"), str(tmp_path / "p.npy")]) == 0

@@ -39,6 +39,9 @@ shared = lbvh.build(v, f)
 moves = np.tile(np.eye(3, 4), (2, 1, 1))
 moves[1, :, 3] = [5.0, 0.0, 0.0]
 scene = lbvh.Scene([shared], [0, 0], moves)
+shear = moves.copy()
+shear[1, 0, 1], shear[1, 2, 2] = 0.6, 2.0   # a shear and a non-uniform scale
+sheared = lbvh.Scene([shared], [0, 0], shear)
 camera = frame_bounds(v.min(axis=0), v.max(axis=0), 48, 32)
 
 def digest(*arrays):
@@ -82,6 +85,8 @@ JOBS = {
     "new scene": lambda: digest(lbvh.Scene([shared], [0, 0], moves * 2).occluded(o, d)),
     "scene closest points": lambda: digest(*scene.closest_points(o[:300])[:3]),
     "scene contains": lambda: digest(scene.contains(o[:300])),
+    "sheared scene closest points": lambda: digest(*(lambda c: (*c, c.u, c.v))(
+        sheared.closest_points(o[:300]))),
     "moved scene": lambda: (lambda s: digest(s.set_transforms([1], moves[1:] * 1.5).intersect(o, d).t,
                                              *s.closest_points(o[:200])[:3]))(
         lbvh.Scene([shared], [0, 0], moves)),

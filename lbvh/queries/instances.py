@@ -31,7 +31,7 @@ from .traverse import TRIANGLE_TESTS, kernel_defines, stack_bucket
 
 KERNEL_FILE = "instances.cl"
 
-__all__ = ["SceneBuffers", "SceneHits", "intersect_scene"]
+__all__ = ["SceneBuffers", "SceneHits", "intersect_scene", "placement_rows"]
 
 _WORK_GROUP = 64
 
@@ -51,6 +51,12 @@ class SceneBuffers:
     after the other, indices offset. ``num_nodes``: the nodes of all chunks.
     ``depth``: the deepest tree of both levels (the stack's size). ``exact_leaves``:
     no mesh has spatial splits.
+    ``placements``: ``float32 (I, 49)`` for the closest points
+    (kernels/instance_closest.cl): the 12 entries of the mesh-to-world transform (A
+    row by row, then b) rounded to float32, then the float32 roundings of what they
+    left (with doubles the kernel adds the two: the float64 transform to about
+    2^-48); the same 24 of its inverse; the square of A's least singular value,
+    rounded down (:func:`placement_rows`).
     """
     top: Tree
     inverse: cl.Buffer
@@ -62,6 +68,25 @@ class SceneBuffers:
     slot_faces: cl.Buffer
     depth: int
     exact_leaves: bool = True
+    placements: cl.Buffer | None = None
+
+
+def placement_rows(transforms: np.ndarray) -> np.ndarray:
+    """``float32 (I, 49)``: :class:`SceneBuffers`' ``placements`` of ``float64 (I, 3, 4)``
+    object-to-world transforms."""
+    a, b = transforms[:, :, :3], transforms[:, :, 3]
+    inv = np.linalg.inv(a)
+    rows = []
+    for m in (np.concatenate([a.reshape(-1, 9), b], axis=1),
+              np.concatenate([inv.reshape(-1, 9), -np.einsum("ijk,ik->ij", inv, b)], axis=1)):
+        hi = m.astype(np.float32)
+        rows += [hi, (m - hi).astype(np.float32)]   # what float32 left: hi + lo is float64's
+    # sigma_min^2, below float64's own error of it, then rounded down to float32
+    s2 = np.linalg.svd(a, compute_uv=False).min(axis=1) ** 2 * (1 - 1e-9)
+    s2_32 = s2.astype(np.float32)
+    s2_32 = np.where(s2_32 > s2, np.nextafter(s2_32, np.float32(0)), s2_32)
+    rows.append(s2_32[:, None])
+    return np.ascontiguousarray(np.concatenate(rows, axis=1), dtype=np.float32)
 
 
 #: Node buffers a scene's kernels take (kernels/instance_ray.h, chunk_nodes): a mesh

@@ -76,6 +76,27 @@ def closest_distance_bound(vertices: np.ndarray, points: np.ndarray) -> np.ndarr
     return CLOSEST_BOUND_ULPS * U * s
 
 
+#: The scene's term of a closest-point distance through :class:`lbvh.Scene`
+#: (kernels/instance_closest.cl), in units of ``U * max |vertex|_inf`` of the flattened
+#: scene's vertices: the kernel moves the float32 mesh vertices to world space in double
+#: with the float64 transform (to 2^-48: a float32 pair per entry), so its answer is the
+#: exactly placed mesh's within :data:`CLOSEST_BOUND_ULPS`; the flattened copy the
+#: float64 brute force reads rounds each world coordinate to float32 (half a unit of its
+#: size, so a vertex moves by at most ``sqrt(3) / 2 U max |vertex|_inf``), and a distance
+#: to a triangle moves no more than its vertices. Double rounding of the transform adds
+#: ``2^-52 (|A| |v| + |b|)``, far below this unless a placement cancels by 2^28.
+SCENE_CLOSEST_BOUND_ULPS = 1
+
+
+def scene_closest_distance_bound(vertices: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``float64 (N,)``: the bound on ``|d - d_ref|`` of each query point's distance
+    through a scene, ``vertices`` the flattened scene's (:meth:`lbvh.Scene.flattened`)
+    and ``d_ref`` the float64 brute force over its triangles:
+    :func:`closest_distance_bound` plus :data:`SCENE_CLOSEST_BOUND_ULPS`."""
+    extent = float(np.abs(vertices).max()) if len(vertices) else 0.0
+    return closest_distance_bound(vertices, points) + SCENE_CLOSEST_BOUND_ULPS * U * extent
+
+
 #: Generalised winding numbers (kernels/winding.cl) against the exact float64 sum, at the
 #: default ``beta = 2``: ``|w - w_exact| <= WINDING_BOUND``. Not a proof but a measured
 #: bound with room: the largest error over the tests' meshes (a faceted sphere, the

@@ -34,8 +34,8 @@ from ..builders import bounds
 from ..builders import collapse
 from ..builders import emit
 from ..builders import morton
-from ..queries import (all_hits, closest, instance_hits, instances, overlap, ray_order, rays,
-                       winding)
+from ..queries import (all_hits, closest, instance_closest, instance_hits, instances, overlap,
+                       ray_order, rays, winding)
 from ..builders import refit
 from ..builders import restructure
 from ..device import sort
@@ -175,6 +175,9 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     # closest.cl: one stack size per bucket (NO_FP64 is for tests only)
     for stack, ordered in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
         add(closest.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered})
+    # instance_closest.cl: closest points through a scene, as closest.cl's
+    for stack, ordered in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
+        add(instance_closest.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered})
     return list(out.values())
 
 

@@ -40,7 +40,7 @@ import lbvh
 from lbvh.queries.all_hits import segment_work
 from lbvh.api import collapse_leaves
 from lbvh.device import sort
-from lbvh.queries import closest, ray_order
+from lbvh.queries import closest, instance_closest, ray_order
 from conftest import REPO, random_soup
 from lbvh import device as dev
 from lbvh.verification import kernel_variants as kv
@@ -126,6 +126,7 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
             scene.occluded(o, d, triangle_test=test)
         scene.count_hits(o, d)
         scene.all_hits(o, d, max_hits=2)
+        scene.closest_points(o)
     # Wide records of both widths, and the binary walk where records would not fit.
     bvh = trees[0]
     for width in WIDTHS:
@@ -158,12 +159,14 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
     # trees of 1M nodes; 64K keys): lowered here, they only decide whether.
     monkeypatch.setattr(ray_order, "MIN_RAYS", 256)
     monkeypatch.setattr(closest, "MIN_POINTS", 256)
+    monkeypatch.setattr(instance_closest, "MIN_POINTS", 256)
     monkeypatch.setattr(ray_order, "MIN_NODES", 256)
     monkeypatch.setattr(sort, "MSD_MIN_KEYS", 256)
     assert lbvh.queries.ray_order.worth_ordering(len(o), trees[0].num_nodes)
     trees[0].intersect(o, d)
     trees[4].occluded(o, d)
     trees[0].closest_points(o)
+    scene.closest_points(o)
     lbvh.build(v, f, device=ctx, key_bits=63).intersect(o, d)
 
 
