@@ -195,6 +195,9 @@ def test_a_mesh_beyond_the_largest_buffer_is_built_in_parts(monkeypatch):
     assert np.array_equal(scene.count_hits(o, d), whole.count_hits(o, d))
     got, want = scene.all_hits(o, d), whole.all_hits(o, d)
     assert np.array_equal(got.offsets, want.offsets) and np.array_equal(got.t, want.t)
+    p = o[:300]
+    assert np.allclose(scene.closest_points(p)[0], whole.closest_points(p).distance, rtol=1e-6,
+                       atol=0)
 
 
 def test_trees_beyond_the_scenes_node_buffers_are_refused(monkeypatch):
