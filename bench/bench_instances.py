@@ -554,7 +554,9 @@ def device_limits(ctx: dev.Context, peak_bpt: float, input_bpt: float) -> dict:
     alloc, total = int(ctx.device.max_mem_alloc_size), int(ctx.device.global_mem_size)
     one = pipeline.max_triangles(ctx)
     by_memory = int(total / (peak_bpt + input_bpt))
-    in_parts = NODE_CHUNKS * one
+    # the parts' trees in NODE_CHUNKS node buffers; their faces in slot order (12 B a
+    # triangle) in one buffer
+    in_parts = min(NODE_CHUNKS * one, alloc // 12)
     return {"device": ctx.name, "max_mem_alloc_size": alloc, "global_mem_size": total,
             "max_triangles_one_tree": one, "max_triangles_in_parts": in_parts,
             "bytes_per_triangle_peak": peak_bpt,
@@ -566,8 +568,9 @@ def device_limits(ctx: dev.Context, peak_bpt: float, input_bpt: float) -> dict:
                 "parts of that many triangles, consecutive in Morton order, and returns a "
                 "lbvh.Scene of them (lbvh.build_parts; hits keep the mesh's own triangle "
                 f"numbers), whose kernels read the parts' trees from {NODE_CHUNKS} node "
-                f"buffers of one allocation each: up to {in_parts:,} triangles in parts "
-                "(lbvh.queries.instances.NODE_CHUNKS). The whole build must also fit the device's {total / 2**30:.1f} GiB: "
+                f"buffers of one allocation each and their faces from one: up to {in_parts:,} "
+                "triangles in parts (lbvh.queries.instances.NODE_CHUNKS). The whole build must "
+                f"also fit the device's {total / 2**30:.1f} GiB: "
                 f"at {peak_bpt:.0f} B/triangle of build peak beyond the input and "
                 f"{input_bpt:.0f} B/triangle of input, about {by_memory:,} triangles in one "
                 "build; a mesh in parts keeps every part's tree and mesh on the device, only "
