@@ -12,9 +12,10 @@
  * Two passes over the same traversal: COUNT=1 writes how many hits each ray
  * has in [tmin, tmax]; COUNT=0 writes them into [offsets[i], offsets[i + 1])
  * (the host's prefix sum of the counts, each capped at the caller's
- * max_hits): t, u, v and the triangle in the caller's numbering, unsorted
- * while they fit; past the cap a hit replaces the farthest kept one when it is
- * nearer (by t, then triangle index), so the nearest ones are kept.
+ * max_hits): t, u, v and the triangle in the caller's numbering; past the cap
+ * a hit replaces the farthest kept one when it is nearer (by t, then triangle
+ * index), so the nearest ones are kept; then the ray's kept hits are sorted
+ * in that order (sort_kept).
  *
  * Defines:
  *   STACK_SIZE=n  stack entries; a push beyond n sets FLAG_OVERFLOW and skips
@@ -78,6 +79,8 @@ __kernel void all_hits(__global const float4 *nodes, __global const float *recor
 #endif
 #if COUNT
     counts[i] = found;
+#else
+    sort_kept(first, min(found, cap), out_t, out_u, out_v, out_prim, out_prim);
 #endif
 #if COUNTERS
     work[i] = (int4)(visits - leaves, leaves, tested, 0);

@@ -87,6 +87,51 @@ inline int kept_slots(__global const long *offsets, int i, long *first) {
 #endif
 }
 
+#if !COUNT
+/* Whether kept hit j goes before kept hit k: by t, then instance, then triangle. */
+inline int kept_before(long j, long k, __global const float *out_t, __global const int *out_inst,
+                       __global const int *out_prim) {
+    return before(out_t[j], HIT_INSTANCE ? out_inst[j] : 0, out_prim[j], out_t[k],
+                  HIT_INSTANCE ? out_inst[k] : 0, out_prim[k]);
+}
+
+inline void swap_kept(long j, long k, __global float *out_t, __global float *out_u,
+                      __global float *out_v, __global int *out_prim, __global int *out_inst) {
+    float f = out_t[j]; out_t[j] = out_t[k]; out_t[k] = f;
+    f = out_u[j]; out_u[j] = out_u[k]; out_u[k] = f;
+    f = out_v[j]; out_v[j] = out_v[k]; out_v[k] = f;
+    int i = out_prim[j]; out_prim[j] = out_prim[k]; out_prim[k] = i;
+#if HIT_INSTANCE
+    i = out_inst[j]; out_inst[j] = out_inst[k]; out_inst[k] = i;
+#endif
+}
+
+/* The n kept hits of a ray, slots [first, first + n), sorted in place by
+ * kept_before: a heapsort (Williams 1964), O(n log n) however many hits a ray
+ * has, so that the host needs no sort of its own. */
+inline void sort_kept(long first, int n, __global float *out_t, __global float *out_u,
+                      __global float *out_v, __global int *out_prim, __global int *out_inst) {
+    for (int end = n; end > 0; --end) {
+        /* heapify on the first pass; then sift the new root of [0, end) down */
+        for (int start = end == n ? n / 2 - 1 : 0; start >= 0; --start) {
+            int root = start;
+            for (;;) {
+                int child = 2 * root + 1;
+                if (child >= end) break;
+                if (child + 1 < end &&
+                    kept_before(first + child, first + child + 1, out_t, out_inst, out_prim))
+                    ++child;
+                if (!kept_before(first + root, first + child, out_t, out_inst, out_prim)) break;
+                swap_kept(first + root, first + child, out_t, out_u, out_v, out_prim, out_inst);
+                root = child;
+            }
+            if (end != n) break;
+        }
+        swap_kept(first, first + end - 1, out_t, out_u, out_v, out_prim, out_inst);
+    }
+}
+#endif
+
 /* Every hit of *ray among the `count` triangles of slots [s0, s0 + count): *found
  * counts them; with COUNT=0 they are kept in [first, first + cap) (hit_slot), t
  * along the direction *ray was made from (make_ray's scaling undone), the

@@ -15,7 +15,8 @@
  * COUNT=0 writes them into [offsets[i], offsets[i + 1]): t (along the world
  * direction as given), u, v, the triangle (prim_order's numbering: within its
  * mesh, or the mesh's face_ids) and the instance; past the cap a hit replaces
- * the farthest kept one when it is nearer (by t, instance, triangle).
+ * the farthest kept one when it is nearer (by t, instance, triangle); then the
+ * ray's kept hits are sorted in that order (sort_kept, every_hit.h).
  *
  * Defines:
  *   STACK_SIZE=n  entries of each level's stack; a push beyond n sets
@@ -90,6 +91,8 @@ __kernel void instance_hits(__global const float4 *top_nodes, __global const int
     }
 #if COUNT
     counts[i] = found;
+#else
+    sort_kept(first, min(found, cap), out_t, out_u, out_v, out_prim, out_inst);
 #endif
     flags[i] = flag;
 }

@@ -202,8 +202,8 @@ def assemble(rays: Rays, total: np.ndarray, flags: np.ndarray, kept: tuple[np.nd
              cap: int | None, dedupe: bool) -> tuple:
     """:class:`AllHits`' fields, then the instance of each hit (``None`` without), from
     what :func:`run_passes` collected (``kept``: ``(t, prim, u, v)`` or ``(t, prim, u, v,
-    instance)``, unsorted within a ray): sorted by ray, then ``t``, then instance, then
-    triangle. With ``dedupe`` (a tree with spatial splits: a triangle may be found in
+    instance)``, in ray order and, within a ray, by ``t``, then instance, then triangle, as
+    the kernels sort them). With ``dedupe`` (a tree with spatial splits: a triangle may be found in
     several leaves, with the same t, u, v, the same test of the same ray and triangle)
     every hit but the first of each (ray, instance, triangle) is dropped, and
     ``max_hits`` (``cap``) applied after."""
@@ -211,11 +211,9 @@ def assemble(rays: Rays, total: np.ndarray, flags: np.ndarray, kept: tuple[np.nd
     t, prim, u, v = kept[:4]
     inst = kept[4] if len(kept) > 4 else None
     ray = np.repeat(np.arange(len(rays)), counts)
-    keys = (prim,) + ((inst,) if inst is not None else ()) + (t, ray)
-    order = np.lexsort(keys)   # the last key first: ray, t, instance, triangle
-    cols = [c[order] for c in (t, prim, u, v) + ((inst,) if inst is not None else ())]
+    # in ray order already, and the kernels sort each ray's hits (sort_kept)
+    cols = [t, prim, u, v] + ([inst] if inst is not None else [])
     if dedupe:
-        ray = ray[order]
         rows = np.stack([ray, cols[1]] + ([cols[4]] if inst is not None else []), axis=1)
         keep = np.zeros(len(ray), bool)
         keep[np.unique(rows, axis=0, return_index=True)[1]] = True
@@ -282,7 +280,7 @@ def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, dep
     (``head``: those before the rays; kernels/instance_hits.cl has them too, with an
     instance column after the triangle's when ``instances``). ``depth``: the deepest
     tree walked (the stack's size). Returns ``(total, flags)`` and, when collecting,
-    ``(t, prim, u, v)`` (and ``instance``) in ray order (unsorted within a ray).
+    ``(t, prim, u, v)`` (and ``instance``) in ray order (each ray's sorted by the kernel).
     ``work`` (``int32 (N, 4)``, counting only, all_hits.cl) receives its counters;
     ``defines``: more of the kernel's compile-time choices (all_hits.cl's ``WIDE``)."""
     n = len(rays)

@@ -136,6 +136,31 @@ def test_max_hits_keeps_the_nearest():
     assert np.array_equal(near.ray, np.flatnonzero(hits.mask))
 
 
+def test_a_ray_through_many_layers_gets_them_in_order_ties_by_triangle():
+    # 300 parallel squares (600 triangles, shuffled), every third one doubled: a ray
+    # through them has 400 hits, pairs of them at the same t; the kernel sorts each ray's
+    # hits itself (sort_kept), by t, then triangle index
+    layers = np.concatenate([np.arange(300), np.arange(0, 300, 3)])
+    quad = np.float32([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]])
+    v = np.concatenate([quad + np.float32([0, 0, z]) for z in layers]).astype(np.float32)
+    f = np.concatenate([np.uint32([[0, 1, 2], [0, 2, 3]]) + 4 * k for k in range(len(layers))])
+    perm = np.random.default_rng(5).permutation(len(f))
+    f = f[perm]
+    o, d = np.float32([[0.3, 0.2, -5], [0.1, -0.4, 500]]), np.float32([[0, 0, 1], [0, 0, -1]])
+    for builder in ("lbvh", "sah"):
+        got = lbvh.build(v, f, builder=builder).all_hits(o, d)
+        want = all_hits_brute(v, f, o, d)
+        assert np.array_equal(got.counts, [400, 400]) and np.array_equal(got.counts, want.counts)
+        assert np.allclose(got.t, want.t, rtol=1e-6)          # float32 against float64
+        for i in range(2):
+            assert set(got.prim[got.of(i)].tolist()) == set(want.prim[want.of(i)].tolist())
+            t, prim = got.t[got.of(i)], got.prim[got.of(i)]
+            tie = np.diff(t) == 0
+            assert (np.diff(t) >= 0).all() and tie.sum() == 100 and (prim[1:][tie] > prim[:-1][tie]).all()
+        capped = lbvh.build(v, f, builder=builder).all_hits(o, d, max_hits=7)
+        assert np.array_equal(capped.t[capped.of(0)], got.t[got.of(0)][:7])
+
+
 def test_intervals_batches_and_bad_rays():
     v, f = dense_soup(800, 8)
     bvh = lbvh.build(v, f)
