@@ -5,31 +5,13 @@
  * and far planes by the sign bits of d, the same 1/d (jx.. for the near planes
  * where 1/d overflowed), NaN distances ignored, the entry padded by SLAB_PAD.
  *
- * Defines: WIDTH (4 or 8, default 8), the lanes of a record.
+ * Defines: WIDTH (4 or 8, default 8), the lanes of a record (wide_rows.h).
  */
 #ifndef LBVH_WIDE_SLAB_H
 #define LBVH_WIDE_SLAB_H
 #include "ray_triangle.h"
 
-#ifndef WIDTH
-#define WIDTH 8
-#endif
-
-#if WIDTH == 4
-typedef float4 floatw;
-typedef int4 intw;
-#elif WIDTH == 8
-typedef float8 floatw;
-typedef int8 intw;
-#else
-#error "WIDTH must be 4 or 8"
-#endif
-typedef union { floatw v; float s[WIDTH]; } floatw_lanes;
-typedef union { intw v; int s[WIDTH]; } intw_lanes;
-
-/* max_keep and min_keep lane by lane (NaN in x keeps m). */
-inline floatw max_keep_w(floatw x, floatw m) { return x > m ? x : m; }
-inline floatw min_keep_w(floatw x, floatw m) { return x < m ? x : m; }
+#include "wide_rows.h"
 
 /* A ray's constants broadcast to the lanes, and the rows of a record holding
  * each axis's near and far planes. */

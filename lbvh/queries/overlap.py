@@ -24,6 +24,7 @@ from .. import device as dev
 from ..builders.bounds import triangle_boxes_numpy
 from ..mesh import real_array
 from .closest import stack_size_for
+from .traverse import stack_bucket, stack_need
 from .target import QueryTarget
 
 KERNEL_FILE = "overlap.cl"
@@ -113,16 +114,21 @@ def overlapping(target: QueryTarget, lower: Any, upper: Any) -> Overlaps:
     ctx, tree, mem = target.ctx, target.tree, target.ctx.memory
     if n == 0:
         return Overlaps(np.zeros(1, np.int64), np.zeros(0, np.int32), np.zeros(0, bool), 0)
-    stack = stack_size_for(target)
     launch = dev.Launch(n, 1, -(-n // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
     bufs = {"lower": mem.upload(lo), "upper": mem.upload(hi), "counts": mem.alloc(4 * n),
             "flags": mem.alloc(4 * n), "offsets": mem.alloc(8 * (n + 1))}
-    args = (tree.nodes, tree.prim_order, target.mesh.vertices_buf, target.slot_faces(),
-            tree.root, tree.num_nodes, bufs["lower"], bufs["upper"], n)
+    wide = target.wide_records()
+    records = (wide.buffer, wide.root_x, wide.root_y) if wide.packed else (tree.nodes, tree.root, 0)
+    walk = {"WIDE": 1, "WIDTH": wide.width} if wide.packed else {}
+    # a record pushes up to WIDTH - 1 lanes: the records' own stack need, else the depth
+    stack = stack_bucket(stack_need(target)) if wide.packed else stack_size_for(target)
+    args = (tree.nodes, records[0], tree.prim_order, target.mesh.vertices_buf,
+            target.slot_faces(), tree.root, records[1], records[2], tree.num_nodes,
+            bufs["lower"], bufs["upper"], n)
     prims_buf = None
     try:
         dev.run(ctx, KERNEL_FILE, "overlapping", launch, *args, bufs["offsets"], bufs["counts"],
-                bufs["flags"], defines={"STACK_SIZE": stack, "COUNT": 1})
+                bufs["flags"], defines={"STACK_SIZE": stack, "COUNT": 1, **walk})
         counts = dev.from_device(ctx, bufs["counts"], np.int32, (n,))
         offsets = np.zeros(n + 1, np.int64)
         np.cumsum(counts, out=offsets[1:])
@@ -132,14 +138,12 @@ def overlapping(target: QueryTarget, lower: Any, upper: Any) -> Overlaps:
             prims_buf = mem.alloc(4 * total)
             cl.enqueue_copy(ctx.queue, bufs["offsets"], offsets)
             dev.run(ctx, KERNEL_FILE, "overlapping", launch, *args, bufs["offsets"], prims_buf,
-                    bufs["flags"], defines={"STACK_SIZE": stack, "COUNT": 0})
+                    bufs["flags"], defines={"STACK_SIZE": stack, "COUNT": 0, **walk})
             cl.enqueue_copy(ctx.queue, prims, prims_buf, is_blocking=True)
         flags = dev.from_device(ctx, bufs["flags"], np.int32, (n,))
     finally:
         mem.free(prims_buf, *bufs.values())
-    # ascending per box: sort by (box, triangle)
-    box = np.repeat(np.arange(n), counts)
-    prims = prims[np.lexsort((prims, box))]
+    # ascending per box: the kernel sorts each box's triangles (sort_prims)
     overflow = (flags & FLAG_OVERFLOW) != 0
     return Overlaps(offsets, prims, overflow, int(overflow.sum()))
 

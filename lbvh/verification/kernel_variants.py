@@ -142,6 +142,9 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     # overlap.cl: both passes, one stack size per bucket
     for stack, count in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
         add(overlap.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count})
+        for width in wide.WIDTHS:   # through wide records of either width
+            add(overlap.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count, "WIDE": 1,
+                                      "WIDTH": width})
     # all_hits.cl: both passes (the count with and without counters), one stack size per
     # bucket, the slab padding of the device, through binary nodes and the device's wide
     # records
