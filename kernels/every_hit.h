@@ -243,18 +243,7 @@ inline void wide_tree_hits(__global const float4 *nodes, __global const float *r
             wide_slab((__global const floatw *)records + 8 * x, ray, &w, ray->tmax, &hit, &enter,
                       &exit);
             __global const int *ref = words + 8 * WIDTH * x + 6 * WIDTH;
-            int next = -1;
-            for (int c = 0; c < WIDTH; ++c) {
-                if (!hit.s[c]) continue;
-                if (next < 0) {
-                    next = c;
-                } else if (top < STACK_SIZE) {
-                    stack_x[top] = ref[c];
-                    stack_y[top++] = ref[WIDTH + c];
-                } else {
-                    *flag |= FLAG_OVERFLOW;
-                }
-            }
+            const int next = enter_lanes(&hit, ref, stack_x, stack_y, &top, flag, FLAG_OVERFLOW);
             if (next >= 0) {
                 x = ref[next];
                 y = ref[WIDTH + next];

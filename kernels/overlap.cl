@@ -107,19 +107,7 @@ inline void wide_overlaps(__global const float *records, __global const int *pri
             lanes.v = (row[0] <= hx) & (lx <= row[1]) & (row[2] <= hy) & (ly <= row[3]) &
                       (row[4] <= hz) & (lz <= row[5]);
             __global const int *ref = words + 8 * WIDTH * x + 6 * WIDTH;
-            int next = -1;
-            for (int c = 0; c < WIDTH; ++c) {
-                if (!lanes.s[c]) continue;
-                if (next < 0) {
-                    next = c;
-                } else if (top < STACK_SIZE) {
-                    stack_x[top] = ref[c];
-                    stack_y[top] = ref[WIDTH + c];
-                    ++top;
-                } else {
-                    *flag |= FLAG_OVERFLOW;
-                }
-            }
+            const int next = enter_lanes(&lanes, ref, stack_x, stack_y, &top, flag, FLAG_OVERFLOW);
             if (next >= 0) {
                 x = ref[next];
                 y = ref[WIDTH + next];

@@ -29,4 +29,29 @@ typedef union { intw v; int s[WIDTH]; } intw_lanes;
 inline floatw max_keep_w(floatw x, floatw m) { return x > m ? x : m; }
 inline floatw min_keep_w(floatw x, floatw m) { return x < m ? x : m; }
 
+#ifdef STACK_SIZE
+/* A step of a walk that enters every lane set in *lanes (box queries, every
+ * hit): the first such lane is returned (-1 for none) to be followed, the
+ * others' references (x from row 6, y from row 7 of the record: `ref`) pushed
+ * on (stack_x, stack_y); a push beyond STACK_SIZE drops that lane and sets
+ * `overflow` in *flag. */
+inline int enter_lanes(const intw_lanes *lanes, __global const int *ref, int *stack_x,
+                       int *stack_y, int *top, int *flag, int overflow) {
+    int next = -1;
+    for (int c = 0; c < WIDTH; ++c) {
+        if (!lanes->s[c]) continue;
+        if (next < 0) {
+            next = c;
+        } else if (*top < STACK_SIZE) {
+            stack_x[*top] = ref[c];
+            stack_y[*top] = ref[WIDTH + c];
+            ++*top;
+        } else {
+            *flag |= overflow;
+        }
+    }
+    return next;
+}
+#endif
+
 #endif
