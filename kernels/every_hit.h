@@ -243,17 +243,10 @@ inline void wide_tree_hits(__global const float4 *nodes, __global const float *r
             wide_slab((__global const floatw *)records + 8 * x, ray, &w, ray->tmax, &hit, &enter,
                       &exit);
             __global const int *ref = words + 8 * WIDTH * x + 6 * WIDTH;
-            const int next = enter_lanes(&hit, ref, stack_x, stack_y, &top, flag, FLAG_OVERFLOW);
-            if (next >= 0) {
-                x = ref[next];
-                y = ref[WIDTH + next];
+            if (enter_lanes(&hit, ref, stack_x, stack_y, &top, flag, FLAG_OVERFLOW, &x, &y))
                 continue;
-            }
         }
-        if (top == 0) break;
-        --top;
-        x = stack_x[top];
-        y = stack_y[top];
+        if (!pop_lane(stack_x, stack_y, &top, &x, &y)) break;
     }
 }
 #endif

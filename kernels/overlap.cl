@@ -107,17 +107,10 @@ inline void wide_overlaps(__global const float *records, __global const int *pri
             lanes.v = (row[0] <= hx) & (lx <= row[1]) & (row[2] <= hy) & (ly <= row[3]) &
                       (row[4] <= hz) & (lz <= row[5]);
             __global const int *ref = words + 8 * WIDTH * x + 6 * WIDTH;
-            const int next = enter_lanes(&lanes, ref, stack_x, stack_y, &top, flag, FLAG_OVERFLOW);
-            if (next >= 0) {
-                x = ref[next];
-                y = ref[WIDTH + next];
+            if (enter_lanes(&lanes, ref, stack_x, stack_y, &top, flag, FLAG_OVERFLOW, &x, &y))
                 continue;
-            }
         }
-        if (top == 0) break;
-        --top;
-        x = stack_x[top];
-        y = stack_y[top];
+        if (!pop_lane(stack_x, stack_y, &top, &x, &y)) break;
     }
 }
 #endif

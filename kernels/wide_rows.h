@@ -31,12 +31,12 @@ inline floatw min_keep_w(floatw x, floatw m) { return x < m ? x : m; }
 
 #ifdef STACK_SIZE
 /* A step of a walk that enters every lane set in *lanes (box queries, every
- * hit): the first such lane is returned (-1 for none) to be followed, the
- * others' references (x from row 6, y from row 7 of the record: `ref`) pushed
- * on (stack_x, stack_y); a push beyond STACK_SIZE drops that lane and sets
- * `overflow` in *flag. */
+ * hit): the first such lane's reference becomes (*x, *y), from rows 6-7 of the
+ * record (`ref`), and 1 is returned (0 for no lane); the others' references
+ * are pushed on (stack_x, stack_y), and a push beyond STACK_SIZE drops that
+ * lane and sets `overflow` in *flag. */
 inline int enter_lanes(const intw_lanes *lanes, __global const int *ref, int *stack_x,
-                       int *stack_y, int *top, int *flag, int overflow) {
+                       int *stack_y, int *top, int *flag, int overflow, int *x, int *y) {
     int next = -1;
     for (int c = 0; c < WIDTH; ++c) {
         if (!lanes->s[c]) continue;
@@ -50,7 +50,19 @@ inline int enter_lanes(const intw_lanes *lanes, __global const int *ref, int *st
             *flag |= overflow;
         }
     }
-    return next;
+    if (next < 0) return 0;
+    *x = ref[next];
+    *y = ref[WIDTH + next];
+    return 1;
+}
+
+/* The walk's next reference from the stack into (*x, *y): 0 when it is empty. */
+inline int pop_lane(const int *stack_x, const int *stack_y, int *top, int *x, int *y) {
+    if (*top == 0) return 0;
+    --*top;
+    *x = stack_x[*top];
+    *y = stack_y[*top];
+    return 1;
 }
 #endif
 
