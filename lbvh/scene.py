@@ -59,6 +59,20 @@ def chunk_nodes(ctx: dev.Context) -> int:
     return int(ctx.memory.max_alloc) // NODE_DTYPE.itemsize
 
 
+def is_similarity(a: np.ndarray) -> np.ndarray:
+    """``bool (I,)``: which of the linear parts ``a`` (``(I, 3, 3)``) are a rotation or
+    reflection times one scale (``A^T A = s^2 I``, to 1e-6 of ``s^2``)."""
+    gram = np.einsum("ikj,ikl->ijl", a, a)
+    s2 = np.trace(gram, axis1=1, axis2=2) / 3
+    return np.abs(gram - s2[:, None, None] * np.eye(3)).max(axis=(1, 2)) <= 1e-6 * s2
+
+
+def _upload_world_copy(ctx: dev.Context, vertices: np.ndarray, faces: np.ndarray):
+    """(mesh, tree) of a world-space copy of an instance: the device LBVH."""
+    mesh = Mesh.upload(ctx, vertices, faces)
+    return mesh, build_tree(ctx, mesh, LBVHOptions())
+
+
 def check_transforms(transforms: Any, count: int | None = None) -> np.ndarray:
     """``float64 (I, 3, 4)`` affine transforms from ``(I, 3, 4)`` or ``(I, 4, 4)`` (whose
     last rows must be ``0 0 0 1``), finite and invertible, or a ``ValueError`` naming the
@@ -202,6 +216,13 @@ class Scene:
 
     def _place(self, transforms: np.ndarray) -> None:
         """Set the transforms: the inverses, the world boxes and the top level."""
+        old_transforms = getattr(self, "_transforms", None)
+        copies = getattr(self, "_world_copies", {})
+        if old_transforms is not None:   # world copies of instances that moved are stale
+            moved = (old_transforms != transforms).any(axis=(1, 2))
+            copies = {i: c for i, c in copies.items() if not moved[i]}
+        self._world_copies: dict[int, BVH] = copies
+        self._open: dict[int, bool] = getattr(self, "_open", {})
         self._transforms = transforms
         self._transforms.setflags(write=False)
         a, b = transforms[:, :, :3], transforms[:, :, 3]
@@ -394,22 +415,53 @@ class Scene:
                                         points, max_distance, batch_size=batch_size)
 
     @dev.serialised
+    @dev.serialised
     def winding_numbers(self, points: Any) -> np.ndarray:
-        """``float32 (N,)``: the generalised winding number of the scene, the sum of each
-        instance's mesh's at the point moved into its space, negated for a reflection.
-        Exact (as each mesh's) for similarities, whose solid angles are those of the
-        world; for other transforms exact for closed meshes only (a winding number of a
-        closed surface is a degree, kept by any affine map) and an approximation of
-        open ones'."""
+        """``float32 (N,)``: the generalised winding number of the scene, the sum of its
+        instances', each within its mesh's bound (:data:`~lbvh.verification.error_bound.
+        WINDING_BOUND`) of the exact sum over the instance's world triangles, for any
+        placement. An instance placed by a similarity, or of a closed mesh (whose winding
+        number is a degree, kept by any affine map), is its mesh's winding number at the
+        point moved into its space, negated for a reflection; an open mesh placed by
+        another map (a shear, a non-uniform scale) changes its solid angles, so that
+        instance is answered by a copy of its world triangles, built on first use and
+        kept until it moves."""
         p = check_points(points).astype(np.float64)
         w = np.zeros(len(p))
         a, b = self._transforms[:, :, :3], self._transforms[:, :, 3]
         inv = np.linalg.inv(a)
         sign = np.sign(np.linalg.det(a))
+        similar = is_similarity(a)
         for i in range(self.num_instances):
-            local = ((p - b[i]) @ inv[i].T).astype(np.float32)
-            w += sign[i] * self.meshes[self.mesh_of[i]].winding_numbers(local)
+            mesh = self.meshes[self.mesh_of[i]]
+            if similar[i] or not self._is_open(int(self.mesh_of[i])):
+                local = ((p - b[i]) @ inv[i].T).astype(np.float32)
+                w += sign[i] * mesh.winding_numbers(local)
+            else:
+                w += self._world_copy(i).winding_numbers(p.astype(np.float32))
         return w.astype(np.float32)
+
+    def _is_open(self, m: int) -> bool:
+        """Whether mesh ``m`` has a boundary edge (one of a single face), cached."""
+        if m not in self._open:
+            f = np.asarray(self.meshes[m].faces, np.int64)
+            e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+            _, counts = np.unique(e, axis=0, return_counts=True)
+            self._open[m] = bool((counts == 1).any())
+        return self._open[m]
+
+    def _world_copy(self, i: int) -> BVH:
+        """Instance ``i``'s triangles in world space as a BVH of their own (the LBVH),
+        kept until the instance moves (:meth:`set_transforms`)."""
+        copy = self._world_copies.get(i)
+        if copy is None:
+            mesh = self.meshes[self.mesh_of[i]]
+            t = self._transforms[i]
+            v = np.asarray(mesh.vertices, np.float64) @ t[:, :3].T + t[:, 3]
+            copy = BVH(*_upload_world_copy(self.ctx, v.astype(np.float32),
+                                           np.asarray(mesh.faces)))
+            self._world_copies[i] = copy
+        return copy
 
     def contains(self, points: Any) -> np.ndarray:
         """``bool (N,)``: winding number of the scene > 1/2 (:meth:`winding_numbers`)."""

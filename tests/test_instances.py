@@ -257,6 +257,42 @@ def test_point_queries_through_a_scene_of_similarities():
                        rtol=1e-5, atol=1e-5 * np.abs(sv).max())
 
 
+def test_winding_numbers_of_open_meshes_under_shears_are_the_world_triangles():
+    from lbvh.queries.winding import winding_numbers_numpy
+    from lbvh.verification.error_bound import WINDING_BOUND
+    bv, bf = meshes.cube_sphere(6)
+    ball = lbvh.build(bv, bf)                                  # closed: moved points exact
+    cap_f = bf[bv[bf].mean(axis=1)[:, 2] > 0.2]                # a bowl: very open
+    bowl = lbvh.build(bv, cap_f)
+    squash = np.eye(3, 4)[None].copy()
+    squash[0, :, :3] = [[3, 0, 0], [0, 1, 0], [0, 0, 0.3]]
+    one = lbvh.Scene([bowl], [0], squash)
+    v, f, _ = one.flattened()
+    rng = np.random.default_rng(21)
+    lo, hi = v.min(0), v.max(0)
+    p = (lo + (hi - lo) * rng.uniform(0, 1, (800, 3))).astype(np.float32)
+    exact = winding_numbers_numpy(v, f, p)
+    assert np.abs(one.winding_numbers(p) - exact).max() <= WINDING_BOUND
+    # the bowl's own winding number at the moved point is another number (0.27 off here)
+    local = (p.astype(np.float64) @ np.linalg.inv(squash[0, :, :3]).T).astype(np.float32)
+    assert np.abs(winding_numbers_numpy(bv, cap_f, local) - exact).max() > 3 * WINDING_BOUND
+    # several instances: shears, a reflection, closed and open meshes, then a move
+    t = np.tile(np.eye(3, 4), (3, 1, 1))
+    t[0, :, :3] = [[1, 0.9, 0], [0, 1, 0], [0, 0, 0.4]]
+    t[1, :, :3], t[1, :, 3] = [[2.5, 0, 0], [0, 0.5, 0.3], [0, 0, 1]], [4, 0, 0]
+    t[2, :, :3], t[2, :, 3] = [[1, 0, 0.7], [0, -1, 0], [0, 0, 1]], [0, 0, 5]
+    scene = lbvh.Scene([ball, bowl], [1, 0, 1], t)
+    bound = scene.num_instances * WINDING_BOUND
+    for move in (None, [0, 3, 0]):
+        if move is not None:                # moving the sheared bowl moves its copy
+            t[0, :, 3] = move
+            scene.set_transforms([0], t[:1])
+        v, f, _ = scene.flattened()
+        lo, hi = v.min(0), v.max(0)
+        p = (lo + (hi - lo) * rng.uniform(-0.1, 1.1, (800, 3))).astype(np.float32)
+        assert np.abs(scene.winding_numbers(p) - winding_numbers_numpy(v, f, p)).max() <= bound
+
+
 # -- every hit and the hit counts through a scene (kernels/instance_hits.cl) -----------------
 
 def placed_oddly(count: int, seed: int) -> np.ndarray:
