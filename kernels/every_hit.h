@@ -243,7 +243,8 @@ inline void wide_tree_hits(__global const float4 *nodes, __global const float *r
             wide_slab((__global const floatw *)records + 8 * x, ray, &w, ray->tmax, &hit, &enter,
                       &exit);
             __global const int *ref = words + 8 * WIDTH * x + 6 * WIDTH;
-            if (enter_lanes(&hit, ref, stack_x, stack_y, &top, flag, FLAG_OVERFLOW, &x, &y))
+            if (enter_lanes(&hit, ref, stack_x, stack_y, STACK_SIZE, &top, flag,
+                            FLAG_OVERFLOW, &x, &y))
                 continue;
         }
         if (!pop_lane(stack_x, stack_y, &top, &x, &y)) break;

@@ -107,7 +107,8 @@ inline void wide_overlaps(__global const float *records, __global const int *pri
             lanes.v = (row[0] <= hx) & (lx <= row[1]) & (row[2] <= hy) & (ly <= row[3]) &
                       (row[4] <= hz) & (lz <= row[5]);
             __global const int *ref = words + 8 * WIDTH * x + 6 * WIDTH;
-            if (enter_lanes(&lanes, ref, stack_x, stack_y, &top, flag, FLAG_OVERFLOW, &x, &y))
+            if (enter_lanes(&lanes, ref, stack_x, stack_y, STACK_SIZE, &top, flag,
+                            FLAG_OVERFLOW, &x, &y))
                 continue;
         }
         if (!pop_lane(stack_x, stack_y, &top, &x, &y)) break;

@@ -29,20 +29,20 @@ typedef union { intw v; int s[WIDTH]; } intw_lanes;
 inline floatw max_keep_w(floatw x, floatw m) { return x > m ? x : m; }
 inline floatw min_keep_w(floatw x, floatw m) { return x < m ? x : m; }
 
-#ifdef STACK_SIZE
 /* A step of a walk that enters every lane set in *lanes (box queries, every
  * hit): the first such lane's reference becomes (*x, *y), from rows 6-7 of the
  * record (`ref`), and 1 is returned (0 for no lane); the others' references
- * are pushed on (stack_x, stack_y), and a push beyond STACK_SIZE drops that
- * lane and sets `overflow` in *flag. */
+ * are pushed on (stack_x, stack_y) of `capacity` entries, and a push beyond
+ * it drops that lane and sets `overflow` in *flag. */
 inline int enter_lanes(const intw_lanes *lanes, __global const int *ref, int *stack_x,
-                       int *stack_y, int *top, int *flag, int overflow, int *x, int *y) {
+                       int *stack_y, int capacity, int *top, int *flag, int overflow, int *x,
+                       int *y) {
     int next = -1;
     for (int c = 0; c < WIDTH; ++c) {
         if (!lanes->s[c]) continue;
         if (next < 0) {
             next = c;
-        } else if (*top < STACK_SIZE) {
+        } else if (*top < capacity) {
             stack_x[*top] = ref[c];
             stack_y[*top] = ref[WIDTH + c];
             ++*top;
@@ -64,6 +64,5 @@ inline int pop_lane(const int *stack_x, const int *stack_y, int *top, int *x, in
     *y = stack_y[*top];
     return 1;
 }
-#endif
 
 #endif
