@@ -140,7 +140,7 @@ class RayLists:
             raise ValueError("rays: the sample is not traced (tmax is None); lbvh.build "
                              "traces it, or give RaySample(..., tmax=closest hits)")
         self.o = sample.origins
-        with np.errstate(divide="ignore"):
+        with np.errstate(divide="ignore", over="ignore"):   # 1/0 and 1/denormal: +-inf
             self.inv = (np.float32(1) / sample.directions).astype(np.float32)
         self.tmax = (sample.tmax * np.float32(1 + TMAX_SLACK)).astype(np.float32)
         self.prior = float(prior)

@@ -37,7 +37,7 @@ def twin(lo, hi, sample, prior, candidates, max_leaf, c_node=1.0, c_tri=1.0):
     """One node at a time: the module docstring's rule. Returns the set of every node's
     primitives (as frozensets) and the set of the leaves' (which fix a binary tree)."""
     o = sample.origins
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore", over="ignore"):
         inv = (np.float32(1) / sample.directions).astype(np.float32)
     tmax = (sample.tmax * np.float32(1 + TMAX_SLACK)).astype(np.float32)
     centre = lo * np.float32(0.5) + hi * np.float32(0.5)

@@ -48,7 +48,6 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, Phase, assume, given, settings, strategies as st
 
-import lbvh
 from lbvh.verification import rules, runner
 from lbvh.verification.error_analysis import t_agrees
 from lbvh.verification.hard_cases import make_case
@@ -143,7 +142,7 @@ def rays_for(draw, v: np.ndarray, extreme: bool = True, max_rays: int = 24):
 
 
 def _build(v, f, builder):
-    return lbvh.build(v, f, **runner.BUILDERS[builder])
+    return runner.build_with(builder, v, f)
 
 
 # -- properties ---------------------------------------------------------------------

@@ -134,7 +134,7 @@ def test_one_point_has_zero_extent_and_nothing_to_hit():
     assert np.ptp(c.vertices, axis=0).max() == 0
     assert not judge("one_point").ref.hit.any()
     for builder in BUILDERS:
-        bvh = lbvh.build(c.vertices, c.faces, **runner.BUILDERS[builder])
+        bvh = runner.build_with(builder, c.vertices, c.faces, c.origins, c.directions)
         assert (bvh.lower == 1.5).all() and (bvh.upper == 1.5).all()
 
 
