@@ -12,7 +12,6 @@ import numpy as np
 
 from ..api import build
 from ..queries.traverse import stack_need, stack_size_for
-from ..rendering.camera import frame_bounds
 from . import hard_cases
 from .hard_cases import Case
 from .rules import Judge, Outcome, compare_any, compare_closest, reference
@@ -28,7 +27,7 @@ BUILDERS: dict[str, dict[str, Any]] = {
     "lbvh-auto-treelets": {"builder": "lbvh", "key_bits": "auto", "treelet_rounds": 2},
     "sah": {"builder": "sah"},
     # the SAH reference costed by a sample of rays (lbvh/builders/ray_sampled.py): the
-    # case's own rays, or a camera framing the mesh (build_with)
+    # case's own rays, or rays through the mesh's vertices (build_with)
     "sah-rays": {"builder": "sah", "rays": "the case's rays"},
     "median": {"builder": "median"},
     "midpoint": {"builder": "midpoint"},
@@ -59,7 +58,8 @@ def build_with(builder: str, vertices: np.ndarray, faces: np.ndarray, origins: A
                directions: Any = None, device: Any = None) -> Any:
     """:func:`lbvh.build` with the options of ``BUILDERS[builder]``; ``"sah-rays"`` takes
     its sample from the rays given (at most :data:`SAMPLE_RAYS` of those with a finite,
-    non-zero direction and a finite origin), else from a 16x16 camera framing the mesh."""
+    non-zero direction and a finite origin), else rays from the centre of the mesh's box
+    through its vertices."""
     options = dict(BUILDERS[builder])
     if "rays" in options:
         sample = None
@@ -68,9 +68,15 @@ def build_with(builder: str, vertices: np.ndarray, faces: np.ndarray, origins: A
             good = np.isfinite(o).all(axis=1) & np.isfinite(d).all(axis=1) & (d != 0).any(axis=1)
             if good.any():
                 sample = o[good][:SAMPLE_RAYS], d[good][:SAMPLE_RAYS]
-        if sample is None:
-            v = np.asarray(vertices, np.float32)
-            sample = frame_bounds(v.min(axis=0), v.max(axis=0), 16, 16).rays()
+        if sample is None:   # rays from the box's centre through vertices
+            v = np.asarray(vertices, np.float64)
+            centre = (v.min(axis=0) + v.max(axis=0)) / 2
+            with np.errstate(over="ignore", invalid="ignore"):
+                d = (v[:SAMPLE_RAYS] - centre).astype(np.float32)
+            d = d[np.isfinite(d).all(axis=1) & (d != 0).any(axis=1)]
+            if not len(d):
+                d = np.float32([[1, 0, 0]])
+            sample = np.tile(centre.astype(np.float32), (len(d), 1)), d
         options["rays"] = sample
     return build(vertices, faces, device=device, **options)
 
