@@ -87,6 +87,10 @@ JOBS = {
     "scene contains": lambda: digest(scene.contains(o[:300])),
     "sheared scene closest points": lambda: digest(*(lambda c: (*c, c.u, c.v))(
         sheared.closest_points(o[:300]))),
+    # the teapot is open: a sheared instance's winding numbers come from a world copy,
+    # built on first use (here by every call, on a new scene)
+    "new sheared scene winding numbers": lambda: digest(
+        lbvh.Scene([shared], [0, 0], shear).winding_numbers(o[:200])),
     "moved scene": lambda: (lambda s: digest(s.set_transforms([1], moves[1:] * 1.5).intersect(o, d).t,
                                              *s.closest_points(o[:200])[:3]))(
         lbvh.Scene([shared], [0, 0], moves)),
