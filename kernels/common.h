@@ -49,6 +49,10 @@ inline float3 max3(float3 a, float3 b) {
     return (float3)(a.x > b.x ? a.x : b.x, a.y > b.y ? a.y : b.y, a.z > b.z ? a.z : b.z);
 }
 
+/* |x| by clearing the sign bit: fabs exactly (NaN stays NaN), inline, where
+ * PoCL 3.0 calls fabs out of line. */
+inline float abs_bits(float x) { return as_float(as_uint(x) & 0x7fffffffu); }
+
 inline float3 load_float3(__global const float *p, uint i) {
     return (float3)(p[3 * i], p[3 * i + 1], p[3 * i + 2]);
 }

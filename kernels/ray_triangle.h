@@ -446,9 +446,9 @@ inline int hit_triangle(__global const float *vertices, int i0, int i1, int i2, 
      * (triangles ~1e19 or ~1e-19 in size around the ray: overflow, or
      * denormals that lose digits): then the whole test runs in double and
      * only t, u, v return to float. */
-    if (fabs(U) < FLT_MIN || fabs(V) < FLT_MIN || fabs(W) < FLT_MIN ||
-        !(fabs(det) >= FLT_MIN && fabs(det) <= FLT_MAX) ||
-        !(fabs(T) >= FLT_MIN && fabs(T) <= FLT_MAX))
+    if (abs_bits(U) < FLT_MIN || abs_bits(V) < FLT_MIN || abs_bits(W) < FLT_MIN ||
+        !(abs_bits(det) >= FLT_MIN && abs_bits(det) <= FLT_MAX) ||
+        !(abs_bits(T) >= FLT_MIN && abs_bits(T) <= FLT_MAX))
         return hit_triangle_fp64(vertices, i0, i1, i2, ray, ax, ay, az, bx, by, bz, cx, cy, cz,
                                  own, best, bu, bv);
 #endif

@@ -16,14 +16,46 @@
 #if WIDTH == 4
 typedef float4 floatw;
 typedef int4 intw;
+#define LANE_INDEX ((intw)(0, 1, 2, 3))
 #elif WIDTH == 8
 typedef float8 floatw;
 typedef int8 intw;
+#define LANE_INDEX ((intw)(0, 1, 2, 3, 4, 5, 6, 7))
 #else
 #error "WIDTH must be 4 or 8"
 #endif
 typedef union { floatw v; float s[WIDTH]; } floatw_lanes;
 typedef union { intw v; int s[WIDTH]; } intw_lanes;
+
+/* Bit c set where lane c of v is non-zero (a comparison's lanes are 0 or -1),
+ * without branches: the walks go through the lanes hit by iterating over
+ * these bits (lowest_lane) instead of testing all WIDTH lanes one by one,
+ * whose branches the CPU mispredicts. */
+inline uint lane_bits(intw v) {
+#if WIDTH == 8
+    const intw b = v & (intw)(1, 2, 4, 8, 16, 32, 64, 128);
+    const int4 h = b.lo | b.hi;
+#else
+    const int4 h = v & (int4)(1, 2, 4, 8);
+#endif
+    const int2 q = h.lo | h.hi;
+    return (uint)(q.x | q.y);
+}
+
+/* The index of the lowest set bit of a lane mask m != 0, by bit tests (PoCL
+ * calls clz out of line; OpenCL 1.2 has no ctz). */
+inline int lowest_lane(uint m) {
+    const uint b = m & (0u - m);
+    return ((b & 0xf0u) != 0u ? 4 : 0) | ((b & 0xccu) != 0u ? 2 : 0) | ((b & 0xaau) != 0u ? 1 : 0);
+}
+
+/* The number of set bits of a lane mask (8 bits), by bit arithmetic (PoCL calls
+ * popcount out of line). */
+inline int count_lanes(uint m) {
+    m = m - ((m >> 1) & 0x55u);
+    m = (m & 0x33u) + ((m >> 2) & 0x33u);
+    return (int)((m + (m >> 4)) & 0x0fu);
+}
 
 /* max_keep and min_keep lane by lane (NaN in x keeps m). */
 inline floatw max_keep_w(floatw x, floatw m) { return x > m ? x : m; }
@@ -38,8 +70,8 @@ inline int enter_lanes(const intw_lanes *lanes, __global const int *ref, int *st
                        int *stack_y, int capacity, int *top, int *flag, int overflow, int *x,
                        int *y) {
     int next = -1;
-    for (int c = 0; c < WIDTH; ++c) {
-        if (!lanes->s[c]) continue;
+    for (uint m = lane_bits(lanes->v); m != 0u; m &= m - 1u) {
+        const int c = lowest_lane(m);
         if (next < 0) {
             next = c;
         } else if (*top < capacity) {
