@@ -115,8 +115,13 @@ __kernel void collapse_costs(__global const float4 *nodes, __global const int *p
 }
 
 /* 2. flags[n] = (kept, output leaf); chunk_counts[gid] = their sums over the chunk.
- * Each node climbs to the root or to the first ancestor that became a leaf. */
+ * A node is kept when no proper ancestor became a leaf. Only a node of at
+ * most max_leaf_size triangles can become a leaf (combine), and counts grow
+ * towards the root, so each node climbs only while the ancestors are that
+ * small: at most max_leaf_size - 1 steps, where climbing to the root made
+ * the pass O(nodes x depth). */
 __kernel void mark_kept(__global const int *parent, __global const int *becomes_leaf,
+                        __global const int4 *stats, const int max_leaf_size,
                         const int num_nodes, const int per_item, __global int2 *flags,
                         __global int2 *chunk_counts) {
     const int gid = get_global_id(0);
@@ -125,8 +130,8 @@ __kernel void mark_kept(__global const int *parent, __global const int *becomes_
     int2 sum = (int2)(0, 0);
     for (int n = first; n < last; ++n) {
         int p = parent[n];
-        while (p >= 0 && !becomes_leaf[p]) p = parent[p];
-        const int kept = p < 0;
+        while (p >= 0 && !becomes_leaf[p] && stats[p].z <= max_leaf_size) p = parent[p];
+        const int kept = p < 0 || !becomes_leaf[p];
         const int2 f = (int2)(kept, kept && becomes_leaf[n]);
         flags[n] = f;
         sum += f;

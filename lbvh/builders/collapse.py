@@ -91,8 +91,8 @@ def collapse(tree: Tree, options: CollapseOptions = CollapseOptions(),
     chunks = launch.global_size
     flags = memory.alloc(8 * n)
     chunk_counts = memory.alloc(8 * (chunks + 1))
-    events.append(dev.run(ctx, KERNEL_FILE, "mark_kept", launch, tree.parent, becomes_leaf, n,
-                          launch.per_item, flags, chunk_counts))
+    events.append(dev.run(ctx, KERNEL_FILE, "mark_kept", launch, tree.parent, becomes_leaf, stats,
+                          int(options.max_leaf_size), n, launch.per_item, flags, chunk_counts))
     events.append(dev.run(ctx, KERNEL_FILE, "scan_chunks", dev.Launch(1, 1, 1, None),
                           chunk_counts, chunks))
     totals = np.empty(2, np.int32)
