@@ -16,11 +16,9 @@
 #if WIDTH == 4
 typedef float4 floatw;
 typedef int4 intw;
-#define LANE_INDEX ((intw)(0, 1, 2, 3))
 #elif WIDTH == 8
 typedef float8 floatw;
 typedef int8 intw;
-#define LANE_INDEX ((intw)(0, 1, 2, 3, 4, 5, 6, 7))
 #else
 #error "WIDTH must be 4 or 8"
 #endif
@@ -47,14 +45,6 @@ inline uint lane_bits(intw v) {
 inline int lowest_lane(uint m) {
     const uint b = m & (0u - m);
     return ((b & 0xf0u) != 0u ? 4 : 0) | ((b & 0xccu) != 0u ? 2 : 0) | ((b & 0xaau) != 0u ? 1 : 0);
-}
-
-/* The number of set bits of a lane mask (8 bits), by bit arithmetic (PoCL calls
- * popcount out of line). */
-inline int count_lanes(uint m) {
-    m = m - ((m >> 1) & 0x55u);
-    m = (m & 0x33u) + ((m >> 2) & 0x33u);
-    return (int)((m + (m >> 4)) & 0x0fu);
 }
 
 /* max_keep and min_keep lane by lane (NaN in x keeps m). */
