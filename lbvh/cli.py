@@ -34,6 +34,7 @@ import numpy as np
 
 from .api import build
 from .builders.options import BUILDERS
+from .builders.restructure import TREELET_LEAVES
 from .device import DeviceError, all_devices, describe, find_device, get_context, pocl_target
 from .data import MESHES
 from .mesh import MissingFileError
@@ -150,6 +151,9 @@ def _add_build_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--treelets", type=int, default=0, metavar="ROUNDS",
                    help="lbvh only: rounds of treelet restructuring (Karras & Aila 2013) for a "
                         "tree of lower SAH cost; 1-2 is typical (default 0)")
+    p.add_argument("--treelet-leaves", type=int, default=TREELET_LEAVES, metavar="N",
+                   help="lbvh only: leaves per treelet, 3-7; 5 costs about a third of 7 per "
+                        f"round (default {TREELET_LEAVES})")
     p.add_argument("--keys", choices=["auto", "30", "63"], default="auto",
                    help="Morton key width (default: auto, chosen from the scene)")
     p.add_argument("--device", default=None,
@@ -163,9 +167,11 @@ def _build(scene, args: argparse.Namespace, **extra: Any):
     source = scene.extras.get("instances")
     if source is not None:
         return build(source, builder=args.builder, collapse=args.collapse,
-                     treelet_rounds=args.treelets, key_bits=args.keys, device=args.device, **extra)
+                     treelet_rounds=args.treelets, treelet_leaves=args.treelet_leaves,
+                     key_bits=args.keys, device=args.device, **extra)
     return build(scene.vertices, scene.faces, builder=args.builder, collapse=args.collapse,
-                 treelet_rounds=args.treelets, key_bits=args.keys, device=args.device, **extra)
+                 treelet_rounds=args.treelets, treelet_leaves=args.treelet_leaves,
+                 key_bits=args.keys, device=args.device, **extra)
 
 
 def _scene_name(text: str) -> str:

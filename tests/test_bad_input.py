@@ -272,6 +272,9 @@ ROWS: list[Row] = [
         lambda e: _b(e, e.v, e.f, builder="sah", collapse=True), ValueError, "collapse"),
     Row("lbvh.build", "treelet_rounds=-1", lambda e: _b(e, e.v, e.f, treelet_rounds=-1),
         ValueError, "treelet_rounds: -1"),
+    Row("lbvh.build", "treelet_leaves=8", lambda e: _b(e, e.v, e.f, treelet_rounds=1,
+                                                        treelet_leaves=8),
+        ValueError, "treelet_leaves: 8; expected an integer from 3 to 7"),
     Row("lbvh.build", "treelet_rounds with the SAH builder",
         lambda e: _b(e, e.v, e.f, builder="sah", treelet_rounds=1), ValueError, "treelet_rounds"),
     Row("lbvh.build", "negative collapse cost", lambda e: _b(e, e.v, e.f, collapse=True, c_node=-1),
@@ -494,6 +497,9 @@ ROWS: list[Row] = [
     Row("lbvh info", "--treelets -2", lambda e: [
         "info", e.path("good.obj"), "--treelets", "-2"], SystemExit, "treelet_rounds: -2",
         command=True),
+    Row("lbvh info", "--treelet-leaves 2", lambda e: [
+        "info", e.path("good.obj"), "--treelets", "1", "--treelet-leaves", "2"], SystemExit,
+        "treelet_leaves: 2", command=True),
     Row("lbvh render", "truncated GLB", lambda e: [
         "render", e.path("truncated.glb"), "-o", e.path("out.png")], SystemExit,
         "truncated.glb: cannot read mesh", command=True),

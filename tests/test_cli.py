@@ -145,6 +145,17 @@ def test_info_reads_a_scene_description(capsys):
     assert code == 0 and json.loads(out)["num_triangles"] == 32
 
 
+def test_info_builds_with_smaller_treelets(capsys):
+    code, out, err = _run(capsys, "info", CORNELL, "--treelets", "1", "--treelet-leaves", "5",
+                          "--json")
+    assert code == 0, err
+    report = json.loads(out)
+    assert report["builder"] == "lbvh+treelets1-5"
+    code, out, err = _run(capsys, "info", CORNELL, "--treelets", "1", "--treelet-leaves", "5",
+                          "--validate")
+    assert code == 0 and "validate:    ok" in out, err
+
+
 def test_devices_lists_the_default(capsys):
     code, out, err = _run(capsys, "devices")
     assert code == 0 and "default:" in out

@@ -61,6 +61,7 @@ JOBS = {
     "build": lambda: tree(lbvh.build(v, f)),
     "build63+collapse": lambda: tree(lbvh.build(sv, sf, key_bits=63, collapse=True)),
     "build treelets": lambda: tree(lbvh.build(sv, sf, treelet_rounds=1)),
+    "build small treelets": lambda: tree(lbvh.build(sv, sf, treelet_rounds=1, treelet_leaves=5)),
     "build sah": lambda: tree(lbvh.build(sv[:600], sf[:200], builder="sah")),
     "build sah rays": lambda: tree(lbvh.build(sv[:600], sf[:200], builder="sah",
                                               rays=(o[:300], d[:300]))),

@@ -28,18 +28,24 @@ from .cost import C_NODE, C_TRI
 from .refit import clear_arrivals
 
 KERNEL_FILE = "restructure.cl"
-#: Leaves per treelet (Karras & Aila 2013 use 7; 2**7 subsets fit in private memory).
+#: Leaves per treelet by default (Karras & Aila 2013 use 7; 2**7 subsets fit in
+#: private memory). Fewer leaves cost far less (the search over partitions grows as
+#: 3**leaves) for a smaller gain per round: measured in bench/bench_traverse.py.
 TREELET_LEAVES = 7
+#: The sizes a treelet may have: below 3 leaves there is one topology only.
+TREELET_SIZES = range(3, TREELET_LEAVES + 1)
 
 
 def restructure_treelets(ctx: Context, nodes: cl.Buffer, parent: cl.Buffer, cost: cl.Buffer,
                          arrivals: cl.Buffer, num_nodes: int, root: int, rounds: int,
                          leaf_first: int, num_leaves: int, leaf_nodes: cl.Buffer | None = None,
-                         c_node: float = C_NODE, c_tri: float = C_TRI) -> list[cl.Event]:
+                         c_node: float = C_NODE, c_tri: float = C_TRI,
+                         leaves: int = TREELET_LEAVES) -> list[cl.Event]:
     """``rounds`` bottom-up restructuring passes over a tree whose boxes are final.
 
     ``cost`` (``float32`` per node) and ``arrivals`` (``int32`` per node) are
-    scratch. Leaves are ``leaf_first ..`` (Karras numbering) or ``leaf_nodes``.
+    scratch. Leaves are ``leaf_first ..`` (Karras numbering) or ``leaf_nodes``;
+    ``leaves``: leaves per treelet (:data:`TREELET_SIZES`).
     """
     events = []
     launch = ctx.launch(num_leaves, min_per_item=256)
@@ -49,15 +55,17 @@ def restructure_treelets(ctx: Context, nodes: cl.Buffer, parent: cl.Buffer, cost
         events.append(run(ctx, KERNEL_FILE, "restructure_treelets", launch, nodes, parent, cost,
                           arrivals, leaf_nodes if use_list else arrivals, use_list, leaf_first,
                           num_leaves, launch.per_item, root, np.float32(c_node),
-                          np.float32(c_tri), defines={"TREELET_LEAVES": TREELET_LEAVES}))
+                          np.float32(c_tri), defines={"TREELET_LEAVES": check_treelet_leaves(leaves)}))
     return events
 
 
 def restructure(tree: Tree, rounds: int, mem: Scope, c_node: float = C_NODE,
-                c_tri: float = C_TRI) -> tuple[Tree, list[cl.Event]]:
+                c_tri: float = C_TRI, leaves: int = TREELET_LEAVES
+                ) -> tuple[Tree, list[cl.Event]]:
     """The optimiser: ``rounds`` of treelet restructuring of ``tree`` in place (its
-    boxes final); returns the tree, renamed ``<builder>+treelets<rounds>``, and
-    the events. Scratch comes from ``mem``."""
+    boxes final), with treelets of ``leaves`` leaves; returns the tree, renamed
+    ``<builder>+treelets<rounds>`` (``+treelets<rounds>-<leaves>`` for another size
+    than :data:`TREELET_LEAVES`), and the events. Scratch comes from ``mem``."""
     if not rounds:
         return tree, []
     cost = mem.alloc(4 * tree.num_nodes, scratch=True)
@@ -65,9 +73,10 @@ def restructure(tree: Tree, rounds: int, mem: Scope, c_node: float = C_NODE,
     leaf_list, leaf_first, num_leaves = tree.leaf_walks()
     events = restructure_treelets(tree.ctx, tree.nodes, tree.parent, cost, arrivals, tree.num_nodes,
                                   tree.root, rounds, leaf_first, num_leaves, leaf_list, c_node,
-                                  c_tri)
+                                  c_tri, leaves)
     mem.free(cost, arrivals)
-    return dataclasses.replace(tree, builder=f"{tree.builder}+treelets{rounds}"), events
+    size = "" if leaves == TREELET_LEAVES else f"-{leaves}"
+    return dataclasses.replace(tree, builder=f"{tree.builder}+treelets{rounds}{size}"), events
 
 
 def check_rounds(rounds: object) -> int:
@@ -75,6 +84,15 @@ def check_rounds(rounds: object) -> int:
     if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 0:
         raise ValueError(f"treelet_rounds: {rounds!r}; expected an integer >= 0")
     return int(rounds)
+
+
+def check_treelet_leaves(leaves: object) -> int:
+    """The leaves per treelet as an int in :data:`TREELET_SIZES`, or a ValueError naming it."""
+    if isinstance(leaves, bool) or not isinstance(leaves, (int, np.integer)) \
+            or leaves not in TREELET_SIZES:
+        raise ValueError(f"treelet_leaves: {leaves!r}; expected an integer from "
+                         f"{TREELET_SIZES[0]} to {TREELET_SIZES[-1]}")
+    return int(leaves)
 
 
 # -- pure Python twin ---------------------------------------------------------------
@@ -95,8 +113,9 @@ class _Treelets:
     """Serial restructuring of one tree held in host arrays (modified in place)."""
 
     def __init__(self, nodes: np.ndarray, parent: np.ndarray, root: int,
-                 c_node: float, c_tri: float) -> None:
+                 c_node: float, c_tri: float, leaves: int = TREELET_LEAVES) -> None:
         self.nodes, self.parent = nodes, parent
+        self.leaves = check_treelet_leaves(leaves)
         self.lo, self.hi = nodes["lower"], nodes["upper"]
         self.scale = _box_scale(self.lo[root], self.hi[root])
         self.c_node = np.float32(c_node)
@@ -121,7 +140,7 @@ class _Treelets:
         leaf = list(self.children(root))
         area = [self.area(self.lo[x], self.hi[x]) for x in leaf]
         inner = [root]
-        while len(leaf) < TREELET_LEAVES:
+        while len(leaf) < self.leaves:
             grow = -1
             for i, x in enumerate(leaf):
                 if self.is_internal(x) and (grow < 0 or area[i] > area[grow]):
@@ -197,16 +216,17 @@ class _Treelets:
 
 
 def restructure_python(nodes: np.ndarray, parent: np.ndarray, root: int, rounds: int = 1,
-                       c_node: float = C_NODE, c_tri: float = C_TRI
-                       ) -> tuple[np.ndarray, np.ndarray]:
-    """Serial twin of :func:`restructure_treelets` on host copies of a tree with final boxes.
+                       c_node: float = C_NODE, c_tri: float = C_TRI,
+                       leaves: int = TREELET_LEAVES) -> tuple[np.ndarray, np.ndarray]:
+    """Serial twin of :func:`restructure_treelets` on host copies of a tree with final boxes,
+    treelets of ``leaves`` leaves.
 
     Returns new ``nodes`` (:data:`NODE_DTYPE`) and ``parent`` (``int32``); the
     inputs are not modified.
     """
     nodes = np.array(nodes, dtype=NODE_DTYPE, copy=True)
     parent = np.array(parent, dtype=np.int32, copy=True)
-    work = _Treelets(nodes, parent, root, c_node, c_tri)
+    work = _Treelets(nodes, parent, root, c_node, c_tri, leaves)
     for _ in range(rounds):
         work.run(root)
     return work.nodes, work.parent

@@ -110,7 +110,8 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
         for karras in (0, 1):
             add(refit.KERNEL_FILE, {"KARRAS_RANGES": karras,
                                     "CLANG_PREFETCH": int(ctx.compiler_is_clang)})
-    add(restructure.KERNEL_FILE, {"TREELET_LEAVES": restructure.TREELET_LEAVES})
+    for leaves in restructure.TREELET_SIZES:
+        add(restructure.KERNEL_FILE, {"TREELET_LEAVES": leaves})
     add(collapse.KERNEL_FILE, {})
     add(ray_order.KERNEL_FILE, {})
     for width in wide.WIDTHS:                                   # wide_level, wide_records
