@@ -110,7 +110,7 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
         for karras in (0, 1):
             add(refit.KERNEL_FILE, {"KARRAS_RANGES": karras,
                                     "CLANG_PREFETCH": int(ctx.compiler_is_clang)})
-    for leaves in restructure.TREELET_SIZES:
+    for leaves in (5, restructure.TREELET_LEAVES):   # the default and the bench's smaller size
         add(restructure.KERNEL_FILE, {"TREELET_LEAVES": leaves})
     add(collapse.KERNEL_FILE, {})
     add(ray_order.KERNEL_FILE, {})
