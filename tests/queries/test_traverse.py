@@ -451,8 +451,14 @@ def test_counters_are_sane():
     one = tree("suzanne", "host_one_leaf").intersect(o, d, counters=True)
     assert (one.nodes_visited == 1).all()
     assert set(np.unique(one.tris_tested)) <= {0, len(scene("suzanne")[1])}
+    # any hit: the same rays hit; each stops at its first triangle hit, having visited the
+    # leaf of every triangle it tested (its children in record order, not nearest first,
+    # so per ray it may test more triangles than the closest-hit walk)
     any_ = bvh.occluded(o, d, counters=True, return_hits=True)
-    assert (any_.tris_tested <= got.tris_tested).all()
+    assert (any_.hit == got.hit).all()
+    assert (any_.tris_tested[any_.hit] >= 1).all()
+    assert (any_.tris_tested <= any_.nodes_visited).all()
+    assert (any_.nodes_visited >= 1).all() and (any_.nodes_visited <= bvh.num_nodes).all()
 
 
 def chain_tree(depth):
@@ -507,8 +513,15 @@ def test_stack_overflow_is_reported_never_silent():
     assert (small.prim[ok] == ref.prim[ok]).all()
     # the ray whose hit was in a dropped subtree is wrong, and flagged
     assert ref.prim[0] == depth - 1 and small.prim[0] != ref.prim[0] and small.overflow[0]
+    # any hit: a ray is hit or flagged, never silently missed (its wide walk takes the
+    # chain's leaves in record order, ahead of the deeper levels, and may not overflow)
     occ = bvh.occluded(o, d, tmin, stack_size=8, return_hits=True)
-    assert occ.overflow_count >= 1 and (occ.hit | occ.overflow).all()
+    assert (occ.hit | occ.overflow).all()
+    # the binary walk (nearest first) of the -x rays overflows, and says so
+    binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="chain")
+    assert not binary.wide_records(max_bytes=0).packed
+    occ = binary.occluded(o, d, tmin, stack_size=8, return_hits=True)
+    assert occ.overflow.tolist()[:3] == [True] * 3 and (occ.hit | occ.overflow).all()
 
 
 def test_deep_trees_get_a_deeper_stack():
