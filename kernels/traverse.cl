@@ -11,8 +11,9 @@
  *                own binary nodes (WIDE=0).
  *
  * A work-item traces the rays [chunk_first, chunk_last) one after the other
- * (the host gives every work-item one ray, in work-groups of 64, on PoCL as on
- * a GPU) with an explicit stack, in closest-hit or any-hit mode.
+ * with an explicit stack, in closest-hit or any-hit mode (lbvh/queries/
+ * traverse.py: on a GPU one ray per work-item in work-groups of 64; on a CPU
+ * work-groups of one work-item over up to 64 rays).
  *
  * Ordered traversal: of the children whose boxes the ray enters, the one with
  * the smallest entry distance is visited first; equal entries: the smaller exit
