@@ -26,7 +26,7 @@ from .. import device as dev
 from ..mesh import real_array
 from .ray_order import MIN_POINTS, point_order
 from .target import QueryTarget
-from .traverse import stack_bucket
+from .traverse import stack_bucket, stack_need
 
 KERNEL_FILE = "closest.cl"
 
@@ -125,12 +125,18 @@ def closest_points(target: QueryTarget, points: Any, max_distance: float = np.in
            "prim": np.empty(n, np.int32), "bary": np.empty((n, 2), np.float32),
            "flags": np.empty(n, np.int32)}
     ctx, tree = target.ctx, target.tree
+    wide = target.wide_records()
+    records = (wide.buffer, wide.root_x, wide.root_y) if wide.packed else (tree.nodes, tree.root, 0)
     batch = int(min(batch_size, max(n, 1)))
     mem = ctx.memory
     bufs = {"points": mem.alloc(12 * batch, flags=cl.mem_flags.READ_ONLY),
             "distance": mem.alloc(4 * batch), "points_out": mem.alloc(12 * batch),
             "prim": mem.alloc(4 * batch), "bary": mem.alloc(8 * batch), "flags": mem.alloc(4 * batch)}
-    base = {"STACK_SIZE": stack_size_for(target), **(extra_defines or {})}
+    # the wide walk (kernels/closest.cl, WIDE=1): a record pushes all its lanes entered but
+    # one, so the records' own stack need; the binary walk: one push per level
+    base = {"STACK_SIZE": stack_bucket(stack_need(target)) if wide.packed else
+            stack_size_for(target), **({"WIDE": 1, "WIDTH": wide.width} if wide.packed else {}),
+            **(extra_defines or {})}
     slot_faces = target.slot_faces()
     try:
         for start in range(0, n, batch):
@@ -141,8 +147,9 @@ def closest_points(target: QueryTarget, points: Any, max_distance: float = np.in
             if m >= MIN_POINTS:   # nearby points one after another: 1.8x on the bunny
                 order, ups = point_order(ctx, bufs["points"], m, *tree.root_box())
             launch = dev.Launch(m, 1, -(-m // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
-            ev = dev.run(ctx, KERNEL_FILE, "closest_points", launch, tree.nodes, tree.prim_order,
-                         target.mesh.vertices_buf, slot_faces, tree.root, tree.num_nodes,
+            ev = dev.run(ctx, KERNEL_FILE, "closest_points", launch, tree.nodes, records[0],
+                         tree.prim_order, target.mesh.vertices_buf, slot_faces, tree.root,
+                         records[1], records[2], tree.num_nodes,
                          bufs["points"], order if order is not None else bufs["flags"], limit, m,
                          bufs["distance"], bufs["points_out"], bufs["prim"], bufs["bary"],
                          bufs["flags"], defines={**base, "POINT_ORDER": int(order is not None)},

@@ -176,9 +176,13 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     # winding.cl: one stack size per bucket
     for stack in traverse.STACK_BUCKETS:
         add(winding.KERNEL_FILE, {"STACK_SIZE": stack})
-    # closest.cl: one stack size per bucket (NO_FP64 is for tests only)
+    # closest.cl: one stack size per bucket (NO_FP64 is for tests only), through binary
+    # nodes and wide records of either width
     for stack, ordered in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
         add(closest.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered})
+        for width in wide.WIDTHS:
+            add(closest.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered, "WIDE": 1,
+                                      "WIDTH": width})
     # instance_closest.cl: closest points through a scene, as closest.cl's
     for stack, ordered in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
         add(instance_closest.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered})

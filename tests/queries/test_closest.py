@@ -47,6 +47,27 @@ def test_the_teapot_agrees_with_the_brute_force():
     check_against_twin(lbvh.build(v, f), around(v, 300, 0))
 
 
+@pytest.mark.parametrize("width", [8, 4])
+def test_the_wide_walk_prunes_as_the_binary_walk(width):
+    """Through wide records (either width) and through the binary nodes (records that
+    would not fit): the same distances bit for bit, both within the twin's bound; the same
+    triangle but where two are equally near."""
+    v, f = shipped_mesh("teapot.obj")
+    p = around(v, 400, 7)
+    bvh = lbvh.build(v, f, collapse=True)
+    assert bvh.wide_records(width=width).packed and bvh.wide_records().width == width
+    wide = check_against_twin(bvh, p)
+    binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
+    assert not binary.wide_records(max_bytes=0).packed
+    nodes = check_against_twin(binary, p)
+    assert np.array_equal(wide.distance.view(np.uint32), nodes.distance.view(np.uint32))
+    differ = wide.prim != nodes.prim
+    q = p[differ].astype(np.float64)
+    gap = [np.linalg.norm(q - point_triangle_numpy(q, *np.moveaxis(v[f[t]], 1, 0)), axis=1)
+           for t in (wide.prim[differ], nodes.prim[differ])]
+    assert (np.abs(gap[0] - gap[1]) <= closest_distance_bound(v, p[differ])).all()
+
+
 @pytest.mark.parametrize("kind", ["lbvh+collapse", "sah", "treelets"])
 def test_trees_with_leaf_lists_and_big_leaves(kind):
     v, f = random_soup(1500, seed=4)
