@@ -9,8 +9,8 @@
  * which are compared again when popped (a branch-and-bound search, as in
  * Ericson 2005, 6.1). A wide record's lanes get their box distances in one
  * vector computation, in `real` as the binary walk's, so both walks prune by
- * the same values (measured 1.24-1.42x faster than the binary walk; bench/
- * README.md).
+ * the same values (1.21-1.29x faster than the binary walk through the API;
+ * bench/README.md).
  *
  * Point-triangle distance (kernels/closest_point.h, which
  * kernels/instance_closest.cl shares): Ericson 2005, Real-Time Collision Detection,

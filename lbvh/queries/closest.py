@@ -97,6 +97,19 @@ def stack_size_for(target: QueryTarget) -> int:
     return stack_bucket(target.traversal_depth() + 1)
 
 
+def walk_of(target: QueryTarget) -> tuple[tuple[cl.Buffer, int, int], dict[str, int]]:
+    """What a depth-first walk of kernels/closest.cl or kernels/overlap.cl is given: the
+    records and the root's reference in them ``(buffer, root_x, root_y)``, and the
+    defines ``STACK_SIZE`` (and ``WIDE``, ``WIDTH``). Through the wide records where
+    they fit (a record pushes all its lanes entered but one: the records' own stack
+    need), else through the binary nodes (one push per level)."""
+    wide = target.wide_records()
+    if wide.packed:
+        return ((wide.buffer, wide.root_x, wide.root_y),
+                {"STACK_SIZE": stack_bucket(stack_need(target)), "WIDE": 1, "WIDTH": wide.width})
+    return (target.tree.nodes, target.tree.root, 0), {"STACK_SIZE": stack_size_for(target)}
+
+
 @dev.serialised
 def closest_points(target: QueryTarget, points: Any, max_distance: float = np.inf, *,
                    batch_size: int = 1 << 20,
@@ -125,18 +138,13 @@ def closest_points(target: QueryTarget, points: Any, max_distance: float = np.in
            "prim": np.empty(n, np.int32), "bary": np.empty((n, 2), np.float32),
            "flags": np.empty(n, np.int32)}
     ctx, tree = target.ctx, target.tree
-    wide = target.wide_records()
-    records = (wide.buffer, wide.root_x, wide.root_y) if wide.packed else (tree.nodes, tree.root, 0)
+    records, walk = walk_of(target)
     batch = int(min(batch_size, max(n, 1)))
     mem = ctx.memory
     bufs = {"points": mem.alloc(12 * batch, flags=cl.mem_flags.READ_ONLY),
             "distance": mem.alloc(4 * batch), "points_out": mem.alloc(12 * batch),
             "prim": mem.alloc(4 * batch), "bary": mem.alloc(8 * batch), "flags": mem.alloc(4 * batch)}
-    # the wide walk (kernels/closest.cl, WIDE=1): a record pushes all its lanes entered but
-    # one, so the records' own stack need; the binary walk: one push per level
-    base = {"STACK_SIZE": stack_bucket(stack_need(target)) if wide.packed else
-            stack_size_for(target), **({"WIDE": 1, "WIDTH": wide.width} if wide.packed else {}),
-            **(extra_defines or {})}
+    base = {**walk, **(extra_defines or {})}
     slot_faces = target.slot_faces()
     try:
         for start in range(0, n, batch):

@@ -23,8 +23,7 @@ import pyopencl as cl
 from .. import device as dev
 from ..builders.bounds import triangle_boxes_numpy
 from ..mesh import real_array
-from .closest import stack_size_for
-from .traverse import stack_bucket, stack_need
+from .closest import walk_of
 from .target import QueryTarget
 
 KERNEL_FILE = "overlap.cl"
@@ -117,18 +116,14 @@ def overlapping(target: QueryTarget, lower: Any, upper: Any) -> Overlaps:
     launch = dev.Launch(n, 1, -(-n // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
     bufs = {"lower": mem.upload(lo), "upper": mem.upload(hi), "counts": mem.alloc(4 * n),
             "flags": mem.alloc(4 * n), "offsets": mem.alloc(8 * (n + 1))}
-    wide = target.wide_records()
-    records = (wide.buffer, wide.root_x, wide.root_y) if wide.packed else (tree.nodes, tree.root, 0)
-    walk = {"WIDE": 1, "WIDTH": wide.width} if wide.packed else {}
-    # a record pushes up to WIDTH - 1 lanes: the records' own stack need, else the depth
-    stack = stack_bucket(stack_need(target)) if wide.packed else stack_size_for(target)
+    records, walk = walk_of(target)
     args = (tree.nodes, records[0], tree.prim_order, target.mesh.vertices_buf,
             target.slot_faces(), tree.root, records[1], records[2], tree.num_nodes,
             bufs["lower"], bufs["upper"], n)
     prims_buf = None
     try:
         dev.run(ctx, KERNEL_FILE, "overlapping", launch, *args, bufs["offsets"], bufs["counts"],
-                bufs["flags"], defines={"STACK_SIZE": stack, "COUNT": 1, **walk})
+                bufs["flags"], defines={**walk, "COUNT": 1})
         counts = dev.from_device(ctx, bufs["counts"], np.int32, (n,))
         offsets = np.zeros(n + 1, np.int64)
         np.cumsum(counts, out=offsets[1:])
@@ -138,7 +133,7 @@ def overlapping(target: QueryTarget, lower: Any, upper: Any) -> Overlaps:
             prims_buf = mem.alloc(4 * total)
             cl.enqueue_copy(ctx.queue, bufs["offsets"], offsets)
             dev.run(ctx, KERNEL_FILE, "overlapping", launch, *args, bufs["offsets"], prims_buf,
-                    bufs["flags"], defines={"STACK_SIZE": stack, "COUNT": 0, **walk})
+                    bufs["flags"], defines={**walk, "COUNT": 0})
             cl.enqueue_copy(ctx.queue, prims, prims_buf, is_blocking=True)
         flags = dev.from_device(ctx, bufs["flags"], np.int32, (n,))
     finally:
