@@ -20,14 +20,30 @@
  *   [0..2] p, [3] R^2, [4..6] N, [7..15] M row by row (M[j][k] = m[7 + 3j + k]).
  * beta2 is beta^2.
  *
+ * With WIDE=1 the walk goes through the tree's wide records (kernels/wide.cl)
+ * instead: `moments` then holds, per record, the same 16 values of each lane's
+ * binary node as 16 rows of WIDTH floats (lbvh/queries/winding.py,
+ * wide_moments; an empty lane has R^2 = -1, so it is always far, and adds 0),
+ * and one record's lanes are tested and expanded in one vector computation;
+ * the lanes that are near are summed (leaves) or pushed (records). Every node
+ * expanded meets the same test as in the binary walk; a node that the binary
+ * walk expands but that is not a lane (a record's inner nodes, the root) is
+ * expanded through its lanes instead, which is as close or closer.
+ *
  * Defines:
  *   STACK_SIZE=n  stack entries; a push beyond n sets FLAG_OVERFLOW and skips
  *                 that subtree (the host sizes it from the tree's depth).
+ *   WIDE=1        walk the wide records (`nodes` is then the records, the root
+ *                 their reference (root, root_y)); WIDTH=4 or 8 lanes.
  */
 #include "common.h"
 
 #ifndef STACK_SIZE
 #define STACK_SIZE 64
+#endif
+
+#ifndef WIDE
+#define WIDE 0
 #endif
 
 #define FLAG_OVERFLOW 1
@@ -42,9 +58,31 @@ inline float solid_angle(float3 q, float3 p0, float3 p1, float3 p2) {
     return 2.0f * atan2(num, den);
 }
 
+/* The exact solid angles of the triangles of slots [first, end), added to w. */
+#define LEAF_SUM(first, end)                                                               \
+    for (int s = (first); s < (end); ++s)                                                  \
+        w += solid_angle(q, load_float3(vertices, slot_faces[3 * s]),                      \
+                         load_float3(vertices, slot_faces[3 * s + 1]),                     \
+                         load_float3(vertices, slot_faces[3 * s + 2]));
+
+#if WIDE
+#include "wide_rows.h"
+
+/* The sum of the lanes of v. */
+inline float lanes_sum(floatw v) {
+#if WIDTH == 8
+    const float4 h = v.lo + v.hi;
+#else
+    const float4 h = v;
+#endif
+    const float2 d = h.lo + h.hi;
+    return d.x + d.y;
+}
+#endif
+
 __kernel void winding_numbers(__global const float4 *nodes, __global const float *moments,
                               __global const float *vertices, __global const uint *slot_faces,
-                              const int root, const int num_nodes,
+                              const int root, const int root_y, const int num_nodes,
                               __global const float *points, const int count,
                               const float beta2,
                               __global float *winding, __global int *flags) {
@@ -55,6 +93,49 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
     int flag = 0;
     int stack[STACK_SIZE];
     int top = 0, visits = 0;
+#if WIDE
+    __global const int *words = (__global const int *)nodes;
+    __global const floatw *rows = (__global const floatw *)moments;
+    if (node_is_leaf(root_y)) {     /* a root leaf: no records */
+        LEAF_SUM(root, root - root_y);
+    } else {
+        int record = root;
+        for (;;) {
+            if (visits++ < num_nodes) {
+                __global const floatw *m = rows + 16 * record;
+                const floatw rx = m[0] - (floatw)(q.x), ry = m[1] - (floatw)(q.y),
+                             rz = m[2] - (floatw)(q.z);
+                const floatw r2 = rx * rx + ry * ry + rz * rz;
+                const intw far = r2 > (floatw)(beta2) * m[3];
+                /* the far lanes' expansions (Barill et al. 2018), as the binary walk's */
+                const floatw inv = (floatw)(1.0f) / sqrt(r2);
+                const floatw inv3 = inv * inv * inv;
+                const floatw mrx = m[7] * rx + m[8] * ry + m[9] * rz;
+                const floatw mry = m[10] * rx + m[11] * ry + m[12] * rz;
+                const floatw mrz = m[13] * rx + m[14] * ry + m[15] * rz;
+                const floatw term = (m[4] * rx + m[5] * ry + m[6] * rz) * inv3 +
+                                    (m[7] + m[11] + m[15]) * inv3 -
+                                    (floatw)(3.0f) * (rx * mrx + ry * mry + rz * mrz) * inv3 * inv * inv;
+                w += lanes_sum(select((floatw)(0.0f), term, far & (m[3] >= (floatw)(0.0f))));
+                /* the near lanes: a leaf's triangles summed, a record pushed */
+                __global const int *ref = words + 8 * WIDTH * record + 6 * WIDTH;
+                for (uint bits = lane_bits(~far); bits != 0u; bits &= bits - 1u) {
+                    const int c = lowest_lane(bits);
+                    const int x = ref[c], y = ref[WIDTH + c];
+                    if (node_is_leaf(y)) {
+                        LEAF_SUM(x, x - y);
+                    } else if (top < STACK_SIZE) {
+                        stack[top++] = x;
+                    } else {
+                        flag |= FLAG_OVERFLOW;
+                    }
+                }
+            }
+            if (top == 0) break;
+            record = stack[--top];
+        }
+    }
+#else
     int node = root;
     for (;;) {
         if (node >= 0 && visits++ < num_nodes) {
@@ -74,10 +155,7 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
                      3.0f * dot(r, mr) * inv3 * inv * inv;
                 node = -1;
             } else if (node_is_leaf(b)) {
-                for (int s = a; s < a - b; ++s)
-                    w += solid_angle(q, load_float3(vertices, slot_faces[3 * s]),
-                                     load_float3(vertices, slot_faces[3 * s + 1]),
-                                     load_float3(vertices, slot_faces[3 * s + 2]));
+                LEAF_SUM(a, a - b);
                 node = -1;
             } else {
                 if (top < STACK_SIZE) stack[top++] = b;
@@ -89,6 +167,7 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
         if (top == 0) break;
         node = stack[--top];
     }
+#endif
     winding[i] = w * (0.25f * M_1_PI_F);
     flags[i] = flag;
 }

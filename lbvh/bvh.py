@@ -66,7 +66,7 @@ class BVH:
         self._host: dict[str, np.ndarray] = {}
         self._wide: Wide | None = None
         self._slot_faces: cl.Buffer | None = None
-        self._moments: cl.Buffer | None = None
+        self._moments: tuple[Wide, cl.Buffer] | None = None
         self._depth: int | None = None
         # Everything handed back when this BVH is dropped: the tree's buffers and
         # the caches' (appended as they are made).
@@ -213,15 +213,28 @@ class BVH:
 
     @dev.serialised
     def winding_moments(self) -> cl.Buffer:
-        """``float32 (num_nodes, 16)`` on the device: the nodes' moments of the winding
-        number query (:func:`lbvh.queries.winding.node_moments`), made on first use;
-        a refit renews them."""
-        if self._moments is None:
+        """The moments of the winding number query on the device, made on first use
+        for the walk that :func:`lbvh.queries.closest.walk_of` picks: per wide record
+        (:func:`lbvh.queries.winding.wide_moments`) where the records are packed, else
+        per node (``float32 (num_nodes, 16)``, :func:`lbvh.queries.winding.node_moments`);
+        a refit, or records of another width, renew them."""
+        wide = self.wide_records()
+        if self._moments is None or self._moments[0] is not wide:
+            self._drop_moments()
             moments = winding.node_moments(self.nodes, self.prim_order, self.root,
                                            self.vertices, self.faces)
-            self._moments = self.ctx.memory.upload(moments)
-            self._owned.append(self._moments)
-        return self._moments
+            if wide.packed and wide.count:
+                moments = winding.wide_moments(moments, winding.read_lanes(self.ctx, wide))
+            buf = self.ctx.memory.upload(moments)
+            self._moments = (wide, buf)
+            self._owned.append(buf)
+        return self._moments[1]
+
+    def _drop_moments(self) -> None:
+        held, self._moments = self._moments, None
+        if held is not None:
+            self._owned[:] = [b for b in self._owned if b is not held[1]]
+            self.ctx.memory.free(held[1])
 
     def traversal_depth(self) -> int:
         """The tree's depth, 0 for a root leaf (its topology never changes)."""
@@ -252,10 +265,7 @@ class BVH:
                     tree.parent, tree.num_prims, tree.num_nodes, leaf_list)
         self.mesh = mesh
         self._host.clear()
-        moments, self._moments = self._moments, None
-        if moments is not None:   # of the old boxes: made again on the next query
-            self._owned[:] = [b for b in self._owned if b is not moments]
-            self.ctx.memory.free(moments)
+        self._drop_moments()   # of the old boxes: made again on the next query
         if self._wide is not None:
             write_records(self.tree, self._wide)   # the traversal's copies of the boxes
         return self

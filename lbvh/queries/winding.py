@@ -27,8 +27,12 @@ expansion of its triangles' solid angles about their area-weighted centroid
 in float64, and the :class:`lbvh.BVH` keeps them). ``beta = 2`` (the default)
 keeps ``|w - w_exact|`` within :data:`lbvh.verification.error_bound.WINDING_BOUND`
 on the tests' meshes, far below the 1/2 that would flip ``contains``; a larger
-``beta`` is slower and closer. The twin is :func:`winding_numbers_numpy`, the
-exact float64 sum over every triangle.
+``beta`` is slower and closer. The walk goes through the tree's wide records
+where they are packed (the moments then per record, :func:`wide_moments`), a
+record's lanes tested and expanded in one vector computation: on the 2-core
+Zen 3 machine 3.8x, 1.6x and 4.0x as many points per second as the binary walk
+on the bunny, Sponza and a 1M-triangle terrain (bench/README.md). The twin is
+:func:`winding_numbers_numpy`, the exact float64 sum over every triangle.
 """
 from __future__ import annotations
 
@@ -39,12 +43,13 @@ import pyopencl as cl
 
 from .. import device as dev
 from ..layout import children_of, is_leaf, node_depths, prim_range_of
-from .closest import check_points, closest_points, stack_size_for
+from .closest import check_points, closest_points, walk_of
 from .target import QueryTarget
+from .wide import Wide
 
 KERNEL_FILE = "winding.cl"
 
-__all__ = ["DEFAULT_BETA", "node_moments", "winding_numbers", "contains", "signed_distance",
+__all__ = ["DEFAULT_BETA", "node_moments", "wide_moments", "winding_numbers", "contains", "signed_distance",
            "winding_numbers_numpy"]
 
 #: The accuracy parameter of Barill et al. 2018: a node is expanded only where the point
@@ -118,6 +123,28 @@ def node_moments(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices:
         return out.astype(np.float32)
 
 
+def wide_moments(moments: np.ndarray, lanes: np.ndarray) -> np.ndarray:
+    """``float32 (records, 16, width)``: what kernels/winding.cl reads of each wide
+    record (WIDE=1): row ``k`` holds ``moments[:, k]`` (:func:`node_moments`) of each
+    lane's binary node (``lanes``, ``int32 (records, width)``, -1 for an empty lane,
+    as :class:`lbvh.queries.wide.Wide` keeps them); an empty lane has zeros and
+    ``R^2 = -1``, so the kernel takes it for far and adds nothing."""
+    lanes = np.asarray(lanes)
+    out = np.asarray(moments, np.float32)[np.maximum(lanes, 0)].transpose(0, 2, 1).copy()
+    empty = np.broadcast_to((lanes < 0)[:, None, :], out.shape)
+    out[empty] = 0.0
+    out[:, 3][lanes < 0] = -1.0
+    return out
+
+
+def read_lanes(ctx: dev.Context, wide: Wide) -> np.ndarray:
+    """``int32 (records, width)``: the binary node of each lane of the records."""
+    lanes = np.empty((wide.count, wide.width), np.int32)
+    if wide.count:
+        cl.enqueue_copy(ctx.queue, lanes, wide.lanes, is_blocking=True)
+    return lanes
+
+
 def _check_beta(beta: Any) -> np.float32:
     try:
         b = float(beta)
@@ -162,20 +189,20 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
     if n == 0:
         return out
     ctx, tree, mem = target.ctx, target.tree, target.ctx.memory
+    (records, root, root_y), defines = walk_of(target)
     moments = target.winding_moments()
     slot_faces = target.slot_faces()
     batch = int(min(batch_size, n))
     bufs = {"points": mem.alloc(12 * batch, flags=cl.mem_flags.READ_ONLY),
             "w": mem.alloc(4 * batch), "flags": mem.alloc(4 * batch)}
-    defines = {"STACK_SIZE": stack_size_for(target)}
     try:
         for start in range(0, n, batch):
             stop = min(n, start + batch)
             m = stop - start
             up = cl.enqueue_copy(ctx.queue, bufs["points"], p[start:stop], is_blocking=False)
             launch = dev.Launch(m, 1, -(-m // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
-            ev = dev.run(ctx, KERNEL_FILE, "winding_numbers", launch, tree.nodes, moments,
-                         target.mesh.vertices_buf, slot_faces, tree.root, tree.num_nodes,
+            ev = dev.run(ctx, KERNEL_FILE, "winding_numbers", launch, records, moments,
+                         target.mesh.vertices_buf, slot_faces, root, root_y, tree.num_nodes,
                          bufs["points"], m, beta2, bufs["w"], bufs["flags"], defines=defines,
                          wait_for=[up])
             cl.enqueue_copy(ctx.queue, out[start:stop], bufs["w"], wait_for=[ev], is_blocking=False)

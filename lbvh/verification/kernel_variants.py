@@ -173,9 +173,12 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
             for clipped in ({}, {"EXACT_LEAVES": 0}):
                 add(instances.KERNEL_FILE, {**traverse.kernel_defines(ctx, any_hit, test, counters,
                                                                       stack), **clipped})
-    # winding.cl: one stack size per bucket
+    # winding.cl: one stack size per bucket, through binary nodes and wide records of
+    # either width
     for stack in traverse.STACK_BUCKETS:
         add(winding.KERNEL_FILE, {"STACK_SIZE": stack})
+        for width in wide.WIDTHS:
+            add(winding.KERNEL_FILE, {"STACK_SIZE": stack, "WIDE": 1, "WIDTH": width})
     # closest.cl: one stack size per bucket (NO_FP64 is for tests only), through binary
     # nodes and wide records of either width
     for stack, ordered in itertools.product(traverse.STACK_BUCKETS, (0, 1)):

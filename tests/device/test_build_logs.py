@@ -134,11 +134,13 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
         bvh.intersect(o, d, counters=True)
         bvh.occluded(o, d)
         bvh.closest_points(o)
+        bvh.winding_numbers(o)
     binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, bvh.vertices, bvh.faces,
                                   builder="x", device=ctx)
     assert not binary.wide_records(max_bytes=0).packed
     binary.intersect(o, d)
     binary.closest_points(o)
+    binary.winding_numbers(o)
     binary.intersect(o, d, order="global")
     binary.occluded(o, d, counters=True)
     # Rays in pyopencl arrays: float32 in place, every other element type converted,

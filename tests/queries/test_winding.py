@@ -10,7 +10,8 @@ import trimesh
 import lbvh
 from conftest import shared_mesh, shipped_mesh
 from lbvh.queries.closest import closest_points_numpy
-from lbvh.queries.winding import node_moments, winding_numbers_numpy, _triangle_terms
+from lbvh.queries.winding import (node_moments, read_lanes, wide_moments, winding_numbers_numpy,
+                                  _triangle_terms)
 from lbvh.verification import meshes
 from lbvh.verification.error_bound import INSIDE_TOLERANCE, WINDING_BOUND
 
@@ -77,6 +78,46 @@ def test_winding_numbers_within_the_bound_of_the_exact_sum(name):
     # the same answer from another tree, within the bound
     other = lbvh.build(v, f, builder="sah")
     assert np.abs(other.winding_numbers(p) - exact).max() <= WINDING_BOUND
+
+
+@pytest.mark.parametrize("width", [4, 8])
+def test_the_wide_walk_answers_as_the_binary_walk(width):
+    """Through wide records (either width) and through the binary nodes (records that
+    would not fit): both within the bound of the exact sum, and within twice the bound
+    of each other; records of another width renew the moments."""
+    v, f = shipped_mesh("teapot.obj")
+    p = box_points(v, 1500, 3)
+    exact = winding_numbers_numpy(v, f, p)
+    bvh = lbvh.build(v, f, collapse=True)
+    bvh.winding_numbers(p[:10])   # moments of the default width first
+    assert bvh.wide_records(width=width).packed and bvh.wide_records().width == width
+    wide = bvh.winding_numbers(p)
+    binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
+    assert not binary.wide_records(max_bytes=0).packed
+    nodes = binary.winding_numbers(p)
+    assert np.abs(wide - exact).max() <= WINDING_BOUND
+    assert np.abs(nodes - exact).max() <= WINDING_BOUND
+    assert np.abs(wide - nodes).max() <= 2 * WINDING_BOUND
+    # a larger beta closes in on the exact sum through the records as well
+    assert np.abs(bvh.winding_numbers(p, beta=8) - exact).max() <= WINDING_BOUND / 10
+
+
+def test_wide_moments_are_the_lanes_moments():
+    v, f = meshes.soup(800, 3, 0.05, spread="normal")
+    bvh = lbvh.build(v, f)
+    wide = bvh.wide_records(width=8)
+    lanes = read_lanes(bvh.ctx, wide)
+    m = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f)
+    rows = wide_moments(m, lanes)
+    assert rows.shape == (wide.count, 16, 8) and rows.dtype == np.float32
+    present = lanes >= 0
+    assert (~present).any()
+    used = lanes[present]   # distinct nodes, every leaf among them
+    assert len(np.unique(used)) == len(used)
+    assert set(used[bvh.is_leaf[used]]) == set(np.flatnonzero(bvh.is_leaf))
+    assert np.array_equal(rows.transpose(0, 2, 1)[present], m[lanes[present]])
+    empty = rows.transpose(0, 2, 1)[~present]
+    assert (empty[:, 3] == -1).all() and (np.delete(empty, 3, axis=1) == 0).all()
 
 
 def test_bunny_with_its_holes():
