@@ -4,10 +4,12 @@ closest-point query."""
 from __future__ import annotations
 
 import numpy as np
+import pyopencl as cl
 import pytest
 import trimesh
 
 import lbvh
+from lbvh import device as dev
 from conftest import shared_mesh, shipped_mesh
 from lbvh.queries.closest import closest_points_numpy
 from lbvh.queries.winding import (node_moments, read_lanes, wide_moments, winding_numbers_numpy,
@@ -118,6 +120,38 @@ def test_wide_moments_are_the_lanes_moments():
     assert np.array_equal(rows.transpose(0, 2, 1)[present], m[lanes[present]])
     empty = rows.transpose(0, 2, 1)[~present]
     assert (empty[:, 3] == -1).all() and (np.delete(empty, 3, axis=1) == 0).all()
+
+
+ATAN2_TEST = """
+__kernel void atan2_of(__global const float *y, __global const float *x, __global float *out) {
+    const int i = get_global_id(0);
+    out[i] = atan2_poly(y[i], x[i]);
+}
+"""
+
+
+def test_the_inline_atan2_within_its_bound(ctx):
+    """kernels/winding.cl's atan2_poly against numpy's float64 arctan2: within 4e-7 of
+    the angle everywhere, IEEE's answers at the signed zeros, NaN kept."""
+    rng = np.random.default_rng(11)
+    n = 1 << 16
+    y = np.concatenate([rng.normal(size=n), rng.uniform(-1, 1, n) * 10.0 ** rng.uniform(-30, 30, n),
+                        [0.0, -0.0, 0.0, -0.0, 1.0, -1.0, 0.0, 1.0, np.nan, 1.0, 3.0, -3.0]])
+    x = np.concatenate([rng.normal(size=n), rng.uniform(-1, 1, n) * 10.0 ** rng.uniform(-30, 30, n),
+                        [1.0, 1.0, -1.0, -1.0, 0.0, 0.0, -0.0, -0.0, 1.0, np.nan, 3.0, -3.0]])
+    y, x = y.astype(np.float32), x.astype(np.float32)
+    prog = cl.Program(ctx.ctx, dev.kernel_source("winding.cl") + ATAN2_TEST).build()
+    bufs = [cl.Buffer(ctx.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
+            for a in (y, x)]
+    out = np.empty_like(y)
+    res = cl.Buffer(ctx.ctx, cl.mem_flags.WRITE_ONLY, out.nbytes)
+    prog.atan2_of(ctx.queue, (len(y),), None, *bufs, res)
+    cl.enqueue_copy(ctx.queue, out, res, is_blocking=True)
+    exact = np.arctan2(y.astype(np.float64), x.astype(np.float64))
+    finite = np.isfinite(exact)
+    assert np.abs(out[finite] - exact[finite]).max() <= 4e-7
+    assert np.array_equal(np.signbit(out[finite]), np.signbit(exact[finite]))
+    assert np.isnan(out[~finite]).all() and (~finite).sum() == 2
 
 
 def test_bunny_with_its_holes():
