@@ -41,31 +41,33 @@ inline real box_distance2(real3 p, float3 lo, float3 hi) {
 }
 
 inline real length2(real3 v) { return v.x * v.x + v.y * v.y + v.z * v.z; }
+/* dot, written out: PoCL 3 calls the builtin out of line (1.05-1.08x here). */
+inline real dot3r(real3 u, real3 v) { return u.x * v.x + u.y * v.y + u.z * v.z; }
 
 inline real clamp01(real t) { return t < 0 ? 0 : (t > 1 ? 1 : t); }
 
 /* Closest point on segment [a, b] to p: parameter t in [0, 1] (Ericson 5.1.2). */
 inline real segment_t(real3 p, real3 a, real3 b) {
     const real3 ab = b - a;
-    const real len2 = dot(ab, ab);
-    return len2 > 0 ? clamp01(dot(p - a, ab) / len2) : 0;
+    const real len2 = dot3r(ab, ab);
+    return len2 > 0 ? clamp01(dot3r(p - a, ab) / len2) : 0;
 }
 
 /* The closest point of triangle (a, b, c) to p as barycentrics (v, w):
  * q = a + v (b - a) + w (c - a) = (1 - v - w) a + v b + w c. */
 inline void closest_on_triangle(real3 p, real3 a, real3 b, real3 c, real *out_v, real *out_w) {
     const real3 ab = b - a, ac = c - a, ap = p - a;
-    const real d1 = dot(ab, ap), d2 = dot(ac, ap);
+    const real d1 = dot3r(ab, ap), d2 = dot3r(ac, ap);
     if (d1 <= 0 && d2 <= 0) { *out_v = 0; *out_w = 0; return; }                    /* vertex a */
     const real3 bp = p - b;
-    const real d3 = dot(ab, bp), d4 = dot(ac, bp);
+    const real d3 = dot3r(ab, bp), d4 = dot3r(ac, bp);
     if (d3 >= 0 && d4 <= d3) { *out_v = 1; *out_w = 0; return; }                   /* vertex b */
     const real vc = d1 * d4 - d3 * d2;
     if (vc <= 0 && d1 >= 0 && d3 <= 0 && d1 - d3 > 0) {                            /* edge ab */
         *out_v = d1 / (d1 - d3); *out_w = 0; return;
     }
     const real3 cp = p - c;
-    const real d5 = dot(ab, cp), d6 = dot(ac, cp);
+    const real d5 = dot3r(ab, cp), d6 = dot3r(ac, cp);
     if (d6 >= 0 && d5 <= d6) { *out_v = 0; *out_w = 1; return; }                   /* vertex c */
     const real vb = d5 * d2 - d1 * d6;
     if (vb <= 0 && d2 >= 0 && d6 <= 0 && d2 - d6 > 0) {                            /* edge ac */
