@@ -65,8 +65,8 @@ inline subtree_t combine(__global const float4 *nodes, int p, int left, int righ
     const float rl = an > 0.0f ? scaled_half_area(llo, lhi, s) / an : 1.0f;
     const float rr = an > 0.0f ? scaled_half_area(rlo, rhi, s) / an : 1.0f;
     subtree_t out;
-    out.first = min(sl.first, sr.first);
-    out.end = max(sl.end, sr.end);
+    out.first = sl.first < sr.first ? sl.first : sr.first;   /* not min/max: out of line on PoCL 3 */
+    out.end = sl.end > sr.end ? sl.end : sr.end;
     out.count = sl.count + sr.count;
     const float subtree_cost = c_node + (rl * sl.cost + rr * sr.cost);
     const float leaf_cost = c_tri * (float)out.count;

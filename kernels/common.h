@@ -15,6 +15,27 @@
 
 inline int node_is_leaf(int b) { return b < 0; }
 
+/* Square roots written so that PoCL 3 keeps them inline: it calls the OpenCL
+ * builtin out of line (a call around one vsqrtps, with the caller's vector
+ * registers spilled around it). The host defines INLINE_SQRT=1 where the
+ * compiler is clang's (PoCL, lbvh/device/programs.py): __builtin_sqrtf is the
+ * same correctly rounded IEEE square root, inline; elsewhere the builtin. */
+#ifndef INLINE_SQRT
+#define INLINE_SQRT 0
+#endif
+#if INLINE_SQRT
+inline float sqrt1(float x) { return __builtin_sqrtf(x); }
+inline float4 sqrt4(float4 v) {
+    return (float4)(__builtin_sqrtf(v.x), __builtin_sqrtf(v.y), __builtin_sqrtf(v.z),
+                    __builtin_sqrtf(v.w));
+}
+inline float8 sqrt8(float8 v) { return (float8)(sqrt4(v.lo), sqrt4(v.hi)); }
+#else
+inline float sqrt1(float x) { return sqrt(x); }
+inline float4 sqrt4(float4 v) { return sqrt(v); }
+inline float8 sqrt8(float8 v) { return sqrt(v); }
+#endif
+
 /* The chunk [first, last) of `count` items that work-item `gid` loops over;
  * one item per work-item on a GPU, a long contiguous run on a CPU. */
 inline int chunk_first(int gid, int per_item, int count) {
@@ -81,13 +102,22 @@ inline float3 box_centre(float3 lo, float3 hi) { return lo * 0.5f + hi * 0.5f; }
 /* Surface areas for the SAH without overflow or underflow: boxes scaled by
  * 2^-e, e the exponent of the largest |coordinate| of a reference box,
  * clamped to [-126, 126] so the factor is a normal float (built from its
- * bits). Scaling by a power of two is exact. */
+ * bits). Scaling by a power of two is exact. The largest |coordinate| is
+ * taken on the bits (a float's magnitude orders as its bits without the sign;
+ * a NaN orders above infinity, as numpy's maximum propagates it in the twin):
+ * fmax, fabs and clamp, which PoCL 3 calls out of line, made the collapse's
+ * cost pass 1.24-1.30x slower (bench/README.md). */
+inline uint max_bits(uint m, float x) {
+    const uint b = as_uint(x) & 0x7fffffffu;
+    return b > m ? b : m;
+}
 inline float box_scale(float3 lo, float3 hi) {
-    float3 m3 = fmax(fabs(lo), fabs(hi));
-    float m = fmax(fmax(m3.x, m3.y), m3.z);
-    int e = ((as_int(m) >> 23) & 0xff) - 126;
-    e = clamp(e, -126, 126);
-    return as_float((127 - e) << 23);
+    uint m = as_uint(lo.x) & 0x7fffffffu;
+    m = max_bits(m, lo.y); m = max_bits(m, lo.z);
+    m = max_bits(m, hi.x); m = max_bits(m, hi.y); m = max_bits(m, hi.z);
+    int e = (int)(m >> 23) - 126;
+    e = e < -126 ? -126 : (e > 126 ? 126 : e);
+    return as_float((uint)(127 - e) << 23);
 }
 
 /* Half the surface area of a box with its coordinates scaled by s. */

@@ -54,14 +54,15 @@ typedef uint8 keys_t;
 inline uint8 quantise(float8 c, float lo, float hi) {
     float extent = hi - lo;
     float8 offset = c - lo;
-    if (isinf(extent)) {
+    if (abs_bits(extent) == INFINITY) {   /* isinf, inline (PoCL 3 calls isinf out of line) */
         extent = hi * 0.5f - lo * 0.5f;
         offset = c * 0.5f - lo * 0.5f;
     }
     const float8 t = extent > 0.0f ? offset / extent : (float8)(0.0f);
     float8 q = t * AXIS_CELLS;
-    q = select((float8)(0.0f), q, q > 0.0f);  /* NaN compares false: 0 */
-    q = select((float8)(AXIS_MAX), q, q < AXIS_MAX);
+    /* Comparisons, not select() (out of line on PoCL 3). NaN compares false: 0 */
+    q = q > 0.0f ? q : (float8)(0.0f);
+    q = q < AXIS_MAX ? q : (float8)(AXIS_MAX);
     return convert_uint8(q);
 }
 

@@ -50,7 +50,10 @@ __kernel void ray_keys(__global const float *origins, __global const float *dire
         const float3 o = load_float3(origins, i);
         const float3 d = load_float3(directions, i);
         const float3 a = (o - lower.xyz) * inv_extent.xyz;
-        const float m = max(max(fabs(d.x), fabs(d.y)), fabs(d.z));  /* > 0: checked on the host */
+        /* the largest |d_k| (> 0: checked on the host), written out: PoCL 3 calls
+         * max and fabs out of line */
+        const float ax = abs_bits(d.x), ay = abs_bits(d.y), az = abs_bits(d.z);
+        const float m = ax > ay ? (ax > az ? ax : az) : (ay > az ? ay : az);
         const float3 u = (d / m + 1.0f) * 0.5f;
         const uint origin_code = interleave(cell_of(a.x), cell_of(a.y), cell_of(a.z));
         const uint direction_code = interleave(cell_of(u.x), cell_of(u.y), cell_of(u.z));

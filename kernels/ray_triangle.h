@@ -130,7 +130,7 @@ inline void prepare_ray(Ray *ray) {
      * ray is traced as d * 2^-texp and its t scaled back at the end. */
     ray->texp = 0;
     /* max_keep: a NaN component is ignored, as by fmax (such a ray is not traced) */
-    const float dmax = max_keep(max_keep(fabs(ray->dx), fabs(ray->dy)), fabs(ray->dz));
+    const float dmax = max_keep(max_keep(abs_bits(ray->dx), abs_bits(ray->dy)), abs_bits(ray->dz));
     if (dmax < 0x1p-60f || dmax > 0x1p60f) {
         /* Only as far as back into [2^-60, 2^60]: the least change of t's
          * scale, so t itself neither overflows nor underflows. */
@@ -158,7 +158,7 @@ inline void prepare_ray(Ray *ray) {
     ray->nx = negx ? 4 : 0; ray->fx = 4 - ray->nx;
     ray->ny = negy ? 5 : 1; ray->fy = 6 - ray->ny;
     ray->nz = negz ? 6 : 2; ray->fz = 8 - ray->nz;
-    const float ax = fabs(ray->dx), ay = fabs(ray->dy), az = fabs(ray->dz);
+    const float ax = abs_bits(ray->dx), ay = abs_bits(ray->dy), az = abs_bits(ray->dz);
     const int kz = ax >= ay ? (ax >= az ? 0 : 2) : (ay >= az ? 1 : 2);
     int kx = kz == 2 ? 0 : kz + 1;
     int ky = kx == 2 ? 0 : kx + 1;

@@ -16,9 +16,15 @@
 #if WIDTH == 4
 typedef float4 floatw;
 typedef int4 intw;
+#define SQRTW sqrt4   /* common.h */
+#define as_floatw as_float4
+#define as_intw as_int4
 #elif WIDTH == 8
 typedef float8 floatw;
 typedef int8 intw;
+#define SQRTW sqrt8   /* common.h */
+#define as_floatw as_float8
+#define as_intw as_int8
 #else
 #error "WIDTH must be 4 or 8"
 #endif

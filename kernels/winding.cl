@@ -84,7 +84,7 @@ inline float atan2_poly(float y, float x) {
 inline float dot3(float3 u, float3 v) { return u.x * v.x + u.y * v.y + u.z * v.z; }
 inline float solid_angle(float3 q, float3 p0, float3 p1, float3 p2) {
     const float3 a = p0 - q, b = p1 - q, c = p2 - q;
-    const float4 l = sqrt((float4)(dot3(a, a), dot3(b, b), dot3(c, c), 0.0f));
+    const float4 l = sqrt4((float4)(dot3(a, a), dot3(b, b), dot3(c, c), 0.0f));
     const float la = l.x, lb = l.y, lc = l.z;
     const float num = a.x * (b.y * c.z - b.z * c.y) + a.y * (b.z * c.x - b.x * c.z) +
                       a.z * (b.x * c.y - b.y * c.x);
@@ -142,7 +142,7 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
                 const floatw r2 = rx * rx + ry * ry + rz * rz;
                 const intw far = r2 > (floatw)(beta2) * m[3];
                 /* the far lanes' expansions (Barill et al. 2018), as the binary walk's */
-                const floatw inv = (floatw)(1.0f) / sqrt(r2);
+                const floatw inv = (floatw)(1.0f) / SQRTW(r2);
                 const floatw inv3 = inv * inv * inv;
                 const floatw mrx = m[7] * rx + m[8] * ry + m[9] * rz;
                 const floatw mry = m[10] * rx + m[11] * ry + m[12] * rz;
@@ -150,7 +150,9 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
                 const floatw term = (m[4] * rx + m[5] * ry + m[6] * rz) * inv3 +
                                     (m[7] + m[11] + m[15]) * inv3 -
                                     (floatw)(3.0f) * (rx * mrx + ry * mry + rz * mrz) * inv3 * inv * inv;
-                w += lanes_sum(select((floatw)(0.0f), term, far & (m[3] >= (floatw)(0.0f))));
+                /* term where far (and not an empty lane), +0 elsewhere: a mask, not
+                 * select(), which PoCL 3 calls out of line */
+                w += lanes_sum(as_floatw(as_intw(term) & (far & (m[3] >= (floatw)(0.0f)))));
                 /* the near lanes: a leaf's triangles summed, a record pushed */
                 __global const int *ref = words + 8 * WIDTH * record + 6 * WIDTH;
                 for (uint bits = lane_bits(~far); bits != 0u; bits &= bits - 1u) {
@@ -179,7 +181,7 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
             const int a = as_int(nodes[2 * node].w), b = as_int(nodes[2 * node + 1].w);
             if (r2 > beta2 * m[3]) {
                 /* far: the expansion (Barill et al. 2018, up to first order) */
-                const float inv = 1.0f / sqrt(r2);
+                const float inv = 1.0f / sqrt1(r2);
                 const float inv3 = inv * inv * inv;
                 const float3 n = (float3)(m[4], m[5], m[6]);
                 const float3 mr = (float3)(m[7] * r.x + m[8] * r.y + m[9] * r.z,

@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pyopencl as cl
 import pytest
 
@@ -73,3 +74,83 @@ def test_build_log_on_request(tmp_path):
         pytest.skip("PoCL's compile target could not be set here")
     assert "kept True" in proc.stdout
     assert "lbvh: build log of kernels/warn.cl" in proc.stderr and "changes the ABI" in proc.stderr
+
+
+SQRT_TEST = """
+__kernel void roots(__global const float *x, __global float *one, __global float *four,
+                    __global float *eight) {
+    const int i = get_global_id(0);
+    one[i] = sqrt1(x[i]);
+    four[i] = sqrt4((float4)(x[i])).z;
+    eight[i] = sqrt8((float8)(x[i])).s6;
+}
+"""
+
+
+def float32_edge_values(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Random float32 bit patterns of every sign and exponent, and the special values."""
+    bits = rng.integers(0, 1 << 32, n, dtype=np.uint64).astype(np.uint32)
+    special = np.float32([0.0, -0.0, np.inf, -np.inf, np.nan, 1.0, 2.0, 4.0, 1e-45, 1.17549435e-38,
+                          3.4028235e38, -1.0])
+    return np.concatenate([bits.view(np.float32), special])
+
+
+@pytest.mark.parametrize("inline", [None, 0])
+def test_the_square_roots_are_ieee_sqrt(ctx, inline):
+    """kernels/common.h's sqrt1/sqrt4/sqrt8, as the host compiles them (clang's inline
+    builtin on PoCL, INLINE_SQRT=1) and through the OpenCL builtin (INLINE_SQRT=0, as
+    on other compilers): numpy's correctly rounded float32 square root bit for bit on a
+    device that rounds sqrt correctly, else within OpenCL 1.2's 3 ulp."""
+    x = float32_edge_values(np.random.default_rng(5), 1 << 16)
+    defines = {} if inline is None else {"INLINE_SQRT": inline}
+    options = ctx.build_options(defines)
+    assert ("-DINLINE_SQRT=1" in options) == (inline is None and programs.compiles_with_clang(ctx.device))
+    prog = cl.Program(ctx.ctx, dev.kernel_source("common.h") + SQRT_TEST).build(options=options)
+    src = cl.Buffer(ctx.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=x)
+    outs = [cl.Buffer(ctx.ctx, cl.mem_flags.WRITE_ONLY, x.nbytes) for _ in range(3)]
+    prog.roots(ctx.queue, (len(x),), None, src, *outs)
+    with np.errstate(invalid="ignore"):
+        exact = np.sqrt(x)
+    rounded = bool(ctx.device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT)
+    for buf in outs:
+        got = np.empty_like(x)
+        cl.enqueue_copy(ctx.queue, got, buf, is_blocking=True)
+        nan = np.isnan(exact)
+        assert np.isnan(got[nan]).all()
+        if rounded:
+            assert np.array_equal(got[~nan].view(np.uint32), exact[~nan].view(np.uint32))
+        else:
+            ulp = np.abs(got[~nan].view(np.int32).astype(np.int64) - exact[~nan].view(np.int32))
+            assert ulp.max() <= 3
+
+
+BOX_SCALE_TEST = """
+__kernel void scales(__global const float *boxes, __global float *out) {
+    const int i = get_global_id(0);
+    __global const float *b = boxes + 6 * i;
+    out[i] = box_scale((float3)(b[0], b[1], b[2]), (float3)(b[3], b[4], b[5]));
+}
+"""
+
+
+def test_box_scale_is_its_twins(ctx):
+    """kernels/common.h's box_scale (written on the bits) against the numpy twin of the
+    collapse, bit for bit, on boxes of every magnitude, signed zeros, denormals and
+    infinities."""
+    from lbvh.builders.collapse import _box_scale
+    rng = np.random.default_rng(3)
+    n = 1 << 14
+    lo = (rng.uniform(-1, 1, (n, 3)) * 10.0 ** rng.uniform(-44, 38, (n, 1))).astype(np.float32)
+    hi = (lo + np.abs(rng.normal(size=(n, 3))) * 10.0 ** rng.uniform(-44, 38, (n, 1))).astype(np.float32)
+    lo[:4] = [[0.0, -0.0, 0.0], [1e-45, -1e-45, 0.0], [-np.inf, 0.0, 0.0], [-3.4e38, 0.0, 1.0]]
+    hi[:4] = [[0.0, 0.0, -0.0], [1e-45, 1e-45, 0.0], [np.inf, 1.0, 1.0], [3.4e38, 1.0, 2.0]]
+    boxes = np.ascontiguousarray(np.hstack([lo, hi]), np.float32)
+    prog = cl.Program(ctx.ctx, dev.kernel_source("common.h") + BOX_SCALE_TEST).build(
+        options=ctx.build_options({}))
+    src = cl.Buffer(ctx.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=boxes)
+    res = cl.Buffer(ctx.ctx, cl.mem_flags.WRITE_ONLY, 4 * n)
+    prog.scales(ctx.queue, (n,), None, src, res)
+    got = np.empty(n, np.float32)
+    cl.enqueue_copy(ctx.queue, got, res, is_blocking=True)
+    with np.errstate(over="ignore", invalid="ignore"):
+        assert np.array_equal(got.view(np.uint32), _box_scale(lo, hi)[:, 0].view(np.uint32))
