@@ -18,8 +18,9 @@ inline int node_is_leaf(int b) { return b < 0; }
 /* Square roots written so that PoCL 3 keeps them inline: it calls the OpenCL
  * builtin out of line (a call around one vsqrtps, with the caller's vector
  * registers spilled around it). The host defines INLINE_SQRT=1 where the
- * compiler is clang's (PoCL, lbvh/device/programs.py): __builtin_sqrtf is the
- * same correctly rounded IEEE square root, inline; elsewhere the builtin. */
+ * compiler is clang's (Context.compiler_is_clang: PoCL), as refit.cl's
+ * CLANG_PREFETCH: __builtin_sqrtf is the same correctly rounded IEEE square
+ * root, inline; elsewhere the OpenCL builtin. */
 #ifndef INLINE_SQRT
 #define INLINE_SQRT 0
 #endif

@@ -200,21 +200,8 @@ def _build_log(prog, dev: cl.Device) -> str:
 
 
 
-def compiles_with_clang(device: cl.Device) -> bool:
-    """Whether the device's OpenCL compiler is clang's: PoCL, on every device it drives."""
-    return "Portable Computing Language" in device.platform.name
-
-
 def build_options(device: cl.Device, defines: dict[str, int | str]) -> list[str]:
-    """The options a kernel file is compiled with: no path (see :func:`kernel_source`).
-
-    Where the compiler is clang's (:func:`compiles_with_clang`) ``INLINE_SQRT=1``
-    comes first (a caller's define overrides it): kernels/common.h then takes
-    square roots through clang's builtin, inline, where PoCL 3 calls the OpenCL
-    builtin out of line; both are the correctly rounded IEEE square root.
-    """
-    if compiles_with_clang(device):
-        defines = {"INLINE_SQRT": 1, **defines}
+    """The options a kernel file is compiled with: no path (see :func:`kernel_source`)."""
     options = ["-cl-std=CL1.2"] + [f"-D{k}={v}" for k, v in sorted(defines.items())]
     if device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT:
         # The Morton quantisation divides; correctly rounded division keeps it

@@ -145,6 +145,13 @@ def read_lanes(ctx: dev.Context, wide: Wide) -> np.ndarray:
     return lanes
 
 
+def kernel_defines(ctx: dev.Context) -> dict[str, int]:
+    """kernels/winding.cl's device-wide choice: ``INLINE_SQRT`` where the compiler is
+    clang's (kernels/common.h: its inline square root; 1.09x on Sponza's winding
+    numbers, bench/README.md)."""
+    return {"INLINE_SQRT": int(ctx.compiler_is_clang)}
+
+
 def _check_beta(beta: Any) -> np.float32:
     try:
         b = float(beta)
@@ -190,6 +197,7 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
         return out
     ctx, tree, mem = target.ctx, target.tree, target.ctx.memory
     (records, root, root_y), defines = walk_of(target)
+    defines = {**defines, **kernel_defines(ctx)}
     moments = target.winding_moments()
     slot_faces = target.slot_faces()
     batch = int(min(batch_size, n))

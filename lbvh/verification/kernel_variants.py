@@ -79,8 +79,9 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     ``exact_divide``: whether the device has correctly rounded float32
     division (it sets traverse.cl's ``SLAB_PAD``); ``compiler_is_clang``:
     whether the platform compiles with clang (PoCL: refit.cl's
-    ``CLANG_PREFETCH``). ``None`` (the default) lists both values: every
-    device of that kind. :func:`variants_for` gives one context's list.
+    ``CLANG_PREFETCH``, winding.cl's ``INLINE_SQRT``). ``None`` (the default)
+    lists both values: every device of that kind. :func:`variants_for` gives one
+    context's list.
     """
     ctxs = [_fake_ctx(is_cpu, d, c) for d in _choices(exact_divide)
             for c in _choices(compiler_is_clang)]
@@ -175,10 +176,11 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
                                                                       stack), **clipped})
     # winding.cl: one stack size per bucket, through binary nodes and wide records of
     # either width
-    for stack in traverse.STACK_BUCKETS:
-        add(winding.KERNEL_FILE, {"STACK_SIZE": stack})
+    for ctx, stack in itertools.product(ctxs, traverse.STACK_BUCKETS):
+        add(winding.KERNEL_FILE, {"STACK_SIZE": stack, **winding.kernel_defines(ctx)})
         for width in wide.WIDTHS:
-            add(winding.KERNEL_FILE, {"STACK_SIZE": stack, "WIDE": 1, "WIDTH": width})
+            add(winding.KERNEL_FILE, {"STACK_SIZE": stack, "WIDE": 1, "WIDTH": width,
+                                      **winding.kernel_defines(ctx)})
     # closest.cl: one stack size per bucket (NO_FP64 is for tests only), through binary
     # nodes and wide records of either width
     for stack, ordered in itertools.product(traverse.STACK_BUCKETS, (0, 1)):

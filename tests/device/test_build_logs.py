@@ -234,10 +234,6 @@ variants = kv.variants_for(ctx)
 if sys.argv[1] != "all":
     sources = {p.name: p.read_text() for p in dev.kernels_dir().iterdir()}
     variants = kv.covering_variants(variants, sources)
-# The square roots as compilers other than clang's take them (kernels/common.h:
-# INLINE_SQRT=0; PoCL's build options define it 1): winding.cl's every variant again.
-variants += [(f, dict(sorted({**d, "INLINE_SQRT": 0}.items()))) for f, d in variants
-             if f == "winding.cl"]
 for filename, defines in variants:
     try:
         prog = ctx.program(filename, defines)

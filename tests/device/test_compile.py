@@ -95,16 +95,18 @@ def float32_edge_values(rng: np.random.Generator, n: int) -> np.ndarray:
     return np.concatenate([bits.view(np.float32), special])
 
 
-@pytest.mark.parametrize("inline", [None, 0])
+@pytest.mark.parametrize("inline", ["host", 0])
 def test_the_square_roots_are_ieee_sqrt(ctx, inline):
-    """kernels/common.h's sqrt1/sqrt4/sqrt8, as the host compiles them (clang's inline
-    builtin on PoCL, INLINE_SQRT=1) and through the OpenCL builtin (INLINE_SQRT=0, as
-    on other compilers): numpy's correctly rounded float32 square root bit for bit on a
-    device that rounds sqrt correctly, else within OpenCL 1.2's 3 ulp."""
+    """kernels/common.h's sqrt1/sqrt4/sqrt8 as the package compiles them on this device
+    (lbvh.queries.winding.kernel_defines: clang's inline builtin on PoCL) and through
+    the OpenCL builtin (INLINE_SQRT=0, as on other compilers): numpy's correctly
+    rounded float32 square root bit for bit on a device that rounds sqrt correctly,
+    else within OpenCL 1.2's 3 ulp."""
+    from lbvh.queries.winding import kernel_defines
     x = float32_edge_values(np.random.default_rng(5), 1 << 16)
-    defines = {} if inline is None else {"INLINE_SQRT": inline}
+    defines = kernel_defines(ctx) if inline == "host" else {"INLINE_SQRT": inline}
+    assert defines["INLINE_SQRT"] == (int(ctx.compiler_is_clang) if inline == "host" else 0)
     options = ctx.build_options(defines)
-    assert ("-DINLINE_SQRT=1" in options) == (inline is None and programs.compiles_with_clang(ctx.device))
     prog = cl.Program(ctx.ctx, dev.kernel_source("common.h") + SQRT_TEST).build(options=options)
     src = cl.Buffer(ctx.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=x)
     outs = [cl.Buffer(ctx.ctx, cl.mem_flags.WRITE_ONLY, x.nbytes) for _ in range(3)]
