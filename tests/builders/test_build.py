@@ -230,6 +230,27 @@ def test_a_dropped_trees_buffers_serve_the_next_build(ctx):
     assert ctx.memory.pooled_bytes() == 0
 
 
+def test_a_collapsed_rebuild_takes_its_buffers_from_the_pool(ctx):
+    """Rebuilding a collapsed tree: the collapse's scratch stays pooled for the next
+    build (its per-node statistics, 16 bytes a node, at least), and the new tree's
+    nodes are the last dropped tree's buffer (no fresh pages: lbvh.builders.collapse)."""
+    v, f = random_soup(5000, seed=23)
+    ctx.memory.trim()
+    first = lbvh.build(v, f, key_bits=30, collapse=True)
+    assert ctx.memory.pooled_bytes() >= 16 * (2 * len(f) - 1)
+    expected, last = first.nodes.copy(), first.nodes_buf.int_ptr
+    del first
+    gc.collect()
+    second = lbvh.build(v, f, key_bits=30, collapse=True)
+    assert second.nodes_buf.int_ptr == last
+    assert np.array_equal(second.nodes, expected)
+    second.validate()
+    del second
+    gc.collect()
+    ctx.memory.trim()
+    assert ctx.memory.pooled_bytes() == 0
+
+
 def test_free_to_pool_hands_a_buffer_to_the_next_allocation(ctx):
     ctx.memory.trim()
     mem = dev.MemoryTracker(ctx)
