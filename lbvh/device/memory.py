@@ -51,9 +51,11 @@ _POISON = os.environ.get(ENV_POISON)
 class DeviceBuffer(cl.Buffer):
     """A ``pyopencl.Buffer`` handed out by :class:`DeviceMemory` (usable wherever
     a ``pyopencl.Buffer`` is): ``nbytes`` is its size as counted, ``serial`` its
-    number in the count."""
+    number in the count, ``mem_flags`` its access flags (a pooled buffer is handed
+    out again only to a request with the same ones)."""
     nbytes: int
     serial: int
+    mem_flags: int
     owner: "DeviceMemory | None" = None
 
     def release(self) -> None:
@@ -136,7 +138,7 @@ class DeviceMemory:
         nbytes = max(int(nbytes), 4)
         with self._lock:
             self._settle()
-            buf = self._take_pooled(nbytes) if (pooled or scratch) else None
+            buf = self._take_pooled(nbytes, flags) if (pooled or scratch) else None
             if buf is None:
                 buf = self._new(nbytes, flags)
             self._poison(buf, nbytes)
@@ -261,15 +263,18 @@ class DeviceMemory:
             raise DeviceError(f"lbvh: allocating {nbytes:,} bytes on {self._name} failed: "
                               f"{exc}") from exc
         buf.nbytes = nbytes
+        buf.mem_flags = flags & ~cl.mem_flags.COPY_HOST_PTR
         buf.owner = self
         return buf
 
-    def _take_pooled(self, nbytes: int) -> DeviceBuffer | None:
-        # any pooled buffer of this size will do, scratch or recycled
+    def _take_pooled(self, nbytes: int, flags: int) -> DeviceBuffer | None:
+        # any pooled buffer of this size and these flags will do, scratch or recycled
+        # (a dropped tree's buffers include read-only ones: an upload's)
         for pool in (self._scratch, self._recycled):
-            free = pool.get(nbytes)
-            if free:
-                return free.pop()
+            free = pool.get(nbytes, [])
+            for k in range(len(free) - 1, -1, -1):
+                if getattr(free[k], "mem_flags", None) == flags:
+                    return free.pop(k)
         return None
 
     def _poison(self, buf: cl.Buffer, nbytes: int) -> None:

@@ -251,6 +251,23 @@ def test_a_collapsed_rebuild_takes_its_buffers_from_the_pool(ctx):
     assert ctx.memory.pooled_bytes() == 0
 
 
+def test_the_pool_hands_out_a_buffer_only_with_its_own_flags(ctx):
+    """A read-only buffer in the pool (a dropped tree's upload) never serves a request
+    for a buffer the kernels write: Oclgrind reported such writes (the collapse's
+    leaf list) before the pool matched flags."""
+    import pyopencl as cl
+    ctx.memory.trim()
+    ro = ctx.memory.alloc(4096 * 7, flags=cl.mem_flags.READ_ONLY)
+    ctx.memory.free(ro, to_pool=True)
+    rw = ctx.memory.alloc(4096 * 7, pooled=True)
+    assert rw.int_ptr != ro.int_ptr and rw.mem_flags == cl.mem_flags.READ_WRITE
+    again = ctx.memory.alloc(4096 * 7, pooled=True, flags=cl.mem_flags.READ_ONLY)
+    assert again.int_ptr == ro.int_ptr
+    ctx.memory.free(rw, again)
+    ctx.memory.trim()
+    assert ctx.memory.pooled_bytes() == 0
+
+
 def test_free_to_pool_hands_a_buffer_to_the_next_allocation(ctx):
     ctx.memory.trim()
     mem = dev.MemoryTracker(ctx)
