@@ -9,20 +9,23 @@
  * for a, b, c the corners minus q. A node far enough from q is replaced by
  * the Taylor expansion of its triangles' solid angle about its area-weighted
  * centroid p (Barill, Dickson, Schmidt, Levin & Jacobson 2018, "Fast winding
- * numbers for soups and clouds", with the terms up to their first order):
- *   omega ~ N . r / |r|^3 + tr(M) / |r|^3 - 3 r^T M r / |r|^5,   r = p - q,
- * N = sum of the triangles' vector areas a_t, M = sum of a_t (c_t - p)^T with
- * c_t the centroids. "Far enough" is |r| > beta * R, R the distance from p to
+ * numbers for soups and clouds", section 3.2, with the terms up to the second
+ * order, ORDER=2, or the first, ORDER=1):
+ *   omega ~ N . r / |r|^3 + tr(M) / |r|^3 - 3 r^T M r / |r|^5 + (second order),
+ * r = p - q, N = sum of the triangles' vector areas a_t, M = sum of
+ * a_t (c_t - p)^T with c_t the centroids; the second-order term is
+ * SECOND_ORDER_W's. "Far enough" is |r| > beta * R, R the distance from p to
  * the farthest corner of the node's box (every triangle of the node lies
  * within R of p).
  *
- * Moments, 16 floats per node (the host computes them, winding.py):
- *   [0..2] p, [3] R^2, [4..6] N, [7..15] M row by row (M[j][k] = m[7 + 3j + k]).
+ * Moments, ROWS floats per node (the host computes them, winding.py):
+ *   [0..2] p, [3] R^2, [4..6] N, [7..15] M row by row (M[j][k] = m[7 + 3j + k]),
+ *   with ORDER=2 also [16..18] g and [19..36] K (SECOND_ORDER_W).
  * beta2 is beta^2.
  *
  * With WIDE=1 the walk goes through the tree's wide records (kernels/wide.cl)
- * instead: `moments` then holds, per record, the same 16 values of each lane's
- * binary node as 16 rows of WIDTH floats (lbvh/queries/winding.py,
+ * instead: `moments` then holds, per record, the same ROWS values of each
+ * lane's binary node as ROWS rows of WIDTH floats (lbvh/queries/winding.py,
  * wide_moments; an empty lane has R^2 = -1, so it is always far, and adds 0),
  * and one record's lanes are tested and expanded in one vector computation;
  * the lanes that are near are summed (leaves) or pushed (records). Every node
@@ -33,6 +36,8 @@
  * Defines:
  *   STACK_SIZE=n  stack entries; a push beyond n sets FLAG_OVERFLOW and skips
  *                 that subtree (the host sizes it from the tree's depth).
+ *   ORDER=2|1     the order of the far nodes' expansion (the moments' rows:
+ *                 37 or 16); 2 unless told.
  *   WIDE=1        walk the wide records (`nodes` is then the records, the root
  *                 their reference (root, root_y)); WIDTH=4 or 8 lanes.
  */
@@ -44,6 +49,15 @@
 
 #ifndef WIDE
 #define WIDE 0
+#endif
+
+#ifndef ORDER
+#define ORDER 2
+#endif
+#if ORDER == 2
+#define ROWS 37
+#else
+#define ROWS 16
 #endif
 
 #define FLAG_OVERFLOW 1
@@ -92,6 +106,23 @@ inline float solid_angle(float3 q, float3 p0, float3 p1, float3 p2) {
     return 2.0f * atan2_poly(num, den);
 }
 
+/* The second-order term of a far node's expansion (ORDER=2; Barill et al. 2018,
+ * section 3.2): 1/2 H_ijk d_j d_k f_i(p), f(x) = (x - q) / |x - q|^3, for
+ * H_ijk = sum_t a_t,i S_t,jk, S_t the mean of (x - p)(x - p)^T over triangle t:
+ *   g . r / |r|^5 + sum_i r_i (K_i . rr) / |r|^7,  rr = (x^2, y^2, z^2, xy, xz, yz),
+ * m[16..18] = g = -3/2 (2 u + t) (u_k = H_iik, t_i = H_ijj) and m[19 + 6 i ..] = K_i,
+ * 15/2 H_i.. over those pairs with the mixed ones doubled (winding.py, node_moments).
+ * inv5 = 1/|r|^5, inv = 1/|r|; works on float or floatw rows alike. */
+#define SECOND_ORDER_W(m, x, y, z, inv5, inv)                                              \
+    (((m)[16] * (x) + (m)[17] * (y) + (m)[18] * (z)) * (inv5) +                           \
+     ((x) * ((m)[19] * (x) * (x) + (m)[20] * (y) * (y) + (m)[21] * (z) * (z) +              \
+             (m)[22] * (x) * (y) + (m)[23] * (x) * (z) + (m)[24] * (y) * (z)) +             \
+      (y) * ((m)[25] * (x) * (x) + (m)[26] * (y) * (y) + (m)[27] * (z) * (z) +              \
+             (m)[28] * (x) * (y) + (m)[29] * (x) * (z) + (m)[30] * (y) * (z)) +             \
+      (z) * ((m)[31] * (x) * (x) + (m)[32] * (y) * (y) + (m)[33] * (z) * (z) +              \
+             (m)[34] * (x) * (y) + (m)[35] * (x) * (z) + (m)[36] * (y) * (z))) *            \
+         (inv5) * (inv) * (inv))
+
 /* The exact solid angles of the triangles of slots [first, end), added to w. */
 #define LEAF_SUM(first, end)                                                               \
     for (int s = (first); s < (end); ++s)                                                  \
@@ -136,7 +167,7 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
         int record = root;
         for (;;) {
             if (visits++ < num_nodes) {
-                __global const floatw *m = rows + 16 * record;
+                __global const floatw *m = rows + ROWS * record;
                 const floatw rx = m[0] - (floatw)(q.x), ry = m[1] - (floatw)(q.y),
                              rz = m[2] - (floatw)(q.z);
                 const floatw r2 = rx * rx + ry * ry + rz * rz;
@@ -149,7 +180,11 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
                 const floatw mrz = m[13] * rx + m[14] * ry + m[15] * rz;
                 const floatw term = (m[4] * rx + m[5] * ry + m[6] * rz) * inv3 +
                                     (m[7] + m[11] + m[15]) * inv3 -
-                                    (floatw)(3.0f) * (rx * mrx + ry * mry + rz * mrz) * inv3 * inv * inv;
+                                    (floatw)(3.0f) * (rx * mrx + ry * mry + rz * mrz) * inv3 * inv * inv
+#if ORDER == 2
+                                    + SECOND_ORDER_W(m, rx, ry, rz, inv3 * inv * inv, inv)
+#endif
+                                    ;
                 /* term where far (and not an empty lane), +0 elsewhere: a mask, not
                  * select(), which PoCL 3 calls out of line */
                 w += lanes_sum(as_floatw(as_intw(term) & (far & (m[3] >= (floatw)(0.0f)))));
@@ -175,12 +210,12 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
     int node = root;
     for (;;) {
         if (node >= 0 && visits++ < num_nodes) {
-            __global const float *m = moments + 16 * node;
+            __global const float *m = moments + ROWS * node;
             const float3 r = (float3)(m[0], m[1], m[2]) - q;
             const float r2 = dot(r, r);
             const int a = as_int(nodes[2 * node].w), b = as_int(nodes[2 * node + 1].w);
             if (r2 > beta2 * m[3]) {
-                /* far: the expansion (Barill et al. 2018, up to first order) */
+                /* far: the expansion (Barill et al. 2018) */
                 const float inv = 1.0f / sqrt1(r2);
                 const float inv3 = inv * inv * inv;
                 const float3 n = (float3)(m[4], m[5], m[6]);
@@ -188,7 +223,11 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
                                            m[10] * r.x + m[11] * r.y + m[12] * r.z,
                                            m[13] * r.x + m[14] * r.y + m[15] * r.z);
                 w += dot(n, r) * inv3 + (m[7] + m[11] + m[15]) * inv3 -
-                     3.0f * dot(r, mr) * inv3 * inv * inv;
+                     3.0f * dot(r, mr) * inv3 * inv * inv
+#if ORDER == 2
+                     + SECOND_ORDER_W(m, r.x, r.y, r.z, inv3 * inv * inv, inv)
+#endif
+                     ;
                 node = -1;
             } else if (node_is_leaf(b)) {
                 LEAF_SUM(a, a - b);

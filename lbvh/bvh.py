@@ -222,7 +222,7 @@ class BVH:
         if self._moments is None or self._moments[0] is not wide:
             self._drop_moments()
             moments = winding.node_moments(self.nodes, self.prim_order, self.root,
-                                           self.vertices, self.faces)
+                                           self.vertices, self.faces, winding.DEFAULT_ORDER)
             if wide.packed and wide.count:
                 moments = winding.wide_moments(moments, winding.read_lanes(self.ctx, wide))
             buf = self.ctx.memory.upload(moments)

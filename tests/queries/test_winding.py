@@ -12,8 +12,8 @@ import lbvh
 from lbvh import device as dev
 from conftest import shared_mesh, shipped_mesh
 from lbvh.queries.closest import closest_points_numpy
-from lbvh.queries.winding import (node_moments, read_lanes, wide_moments, winding_numbers_numpy,
-                                  _triangle_terms)
+from lbvh.queries.winding import (ROWS_ORDER1, ROWS_ORDER2, expansion_numpy, node_moments,
+                                  read_lanes, wide_moments, winding_numbers_numpy, _triangle_terms)
 from lbvh.verification import meshes
 from lbvh.verification.error_bound import INSIDE_TOLERANCE, WINDING_BOUND
 
@@ -59,6 +59,56 @@ def test_moments_sum_the_triangles_of_each_node():
         # every vertex of the node lies within R of p
         reach = np.linalg.norm(v[f[tris]].reshape(-1, 3) - p, axis=1).max()
         assert reach <= np.sqrt(m[node, 3]) * (1 + 1e-6)
+        # the second order: H_ijk = sum a_i S_jk, S the mean of (x - p)(x - p)^T over
+        # each triangle, from its corners: (sum_v d_v d_v^T + 9 d_c d_c^T) / 12
+        d = v[f[tris]].astype(np.float64) - p
+        dc = d.mean(axis=1)
+        s = (np.einsum("tvj,tvk->tjk", d, d) + 9 * np.einsum("tj,tk->tjk", dc, dc)) / 12
+        h = np.einsum("ti,tjk->ijk", t[:, 4:7], s)
+        g = -1.5 * (2 * np.einsum("iik->k", h) + np.einsum("ijj->i", h))
+        k = np.stack([7.5 * h[:, 0, 0], 7.5 * h[:, 1, 1], 7.5 * h[:, 2, 2],
+                      15 * h[:, 0, 1], 15 * h[:, 0, 2], 15 * h[:, 1, 2]], axis=1)
+        scale = np.abs(k).max() + 1e-30
+        assert np.allclose(m[node, 16:19], g, rtol=1e-4, atol=1e-5 * scale)
+        assert np.allclose(m[node, 19:37], k.ravel(), rtol=1e-4, atol=1e-5 * scale)
+    # the first-order moments are the same numbers, without the second-order rows
+    first = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f, order=1)
+    assert first.shape == (bvh.num_nodes, ROWS_ORDER1) and m.shape[1] == ROWS_ORDER2
+    assert np.array_equal(first, m[:, :ROWS_ORDER1].astype(np.float32))
+    with pytest.raises(ValueError, match="order"):
+        node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f, order=3)
+
+
+def test_the_far_expansion_is_its_twins_and_of_the_second_order():
+    """One far node: with beta = 1 every point outside the root's ball sees only the
+    root's expansion in the binary walk (the wide walk starts at the root record's
+    lanes), so the kernel answers expansion_numpy's, within float32 rounding; and that
+    expansion closes in on the exact sum as (R / r)^3 (second
+    order), where the first-order one does as (R / r)^2."""
+    v, f = meshes.soup(400, 3, 0.05, spread="normal")
+    built = lbvh.build(v, f)
+    bvh = lbvh.BVH.from_arrays(built.nodes, built.prim_order, built.root, v, f, builder="x")
+    assert not bvh.wide_records(max_bytes=0).packed
+    m = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f)
+    root = m[bvh.root]
+    radius = float(np.sqrt(root[3]))
+    rng = np.random.default_rng(4)
+    dirs = rng.normal(size=(200, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    errors = {}
+    for dist in (3.0, 6.0, 12.0):
+        p = (root[0:3] + dist * radius * dirs).astype(np.float32)
+        twin = expansion_numpy(root[None, :], p)[0]
+        w = bvh.winding_numbers(p, beta=1.0)
+        assert np.abs(w - twin).max() <= 1e-5 * np.abs(twin).max() + 1e-7
+        exact = winding_numbers_numpy(v, f, p)
+        errors[dist] = (np.abs(twin - exact).max(),
+                        np.abs(expansion_numpy(root[None, :ROWS_ORDER1], p)[0] - exact).max())
+    # each doubling of the distance: the second-order error falls by about 2^5 (1/r^2 of
+    # the contribution times (R / r)^3), the first-order one by about 2^4
+    for near, far in ((3.0, 6.0), (6.0, 12.0)):
+        assert errors[far][0] < errors[near][0] / 16
+    assert all(e2 < e1 / 2 for e2, e1 in errors.values())
 
 
 @pytest.mark.parametrize("name", ["cube_sphere", "icosphere", "box", "teapot", "soup"])
@@ -111,7 +161,7 @@ def test_wide_moments_are_the_lanes_moments():
     lanes = read_lanes(bvh.ctx, wide)
     m = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f)
     rows = wide_moments(m, lanes)
-    assert rows.shape == (wide.count, 16, 8) and rows.dtype == np.float32
+    assert rows.shape == (wide.count, ROWS_ORDER2, 8) and rows.dtype == np.float32
     present = lanes >= 0
     assert (~present).any()
     used = lanes[present]   # distinct nodes, every leaf among them
