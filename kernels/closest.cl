@@ -50,9 +50,6 @@
 
 #include "closest_point.h"
 
-#ifndef POINT_ORDER
-#define POINT_ORDER 0
-#endif
 #ifndef WIDE
 #define WIDE 0
 #endif
@@ -121,11 +118,7 @@ __kernel void closest_points(__global const float4 *nodes, __global const float 
                              __global int *flags) {
     const int k = get_global_id(0);
     if (k >= count) return;
-#if POINT_ORDER
-    const int i = order[k];   /* points in Morton order of their cells (ray_order.cl) */
-#else
-    const int i = k;
-#endif
+    const int i = point_index(order, k);
     const real3 p = to_real3(load_float3(points, i));
     real best2 = (real)max_distance * (real)max_distance;
     int best_slot = -1;

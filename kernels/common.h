@@ -127,4 +127,12 @@ inline float scaled_half_area(float3 lo, float3 hi, float s) {
     return d.x * d.y + d.y * d.z + d.z * d.x;
 }
 
+/* The query point a work-item k answers: order[k] where the points are answered
+ * in the Morton order of their cells (POINT_ORDER=1: ray_order.cl's point_keys,
+ * closest.cl, instance_closest.cl, winding.cl), else k. */
+#ifndef POINT_ORDER
+#define POINT_ORDER 0
+#endif
+inline int point_index(__global const int *order, int k) { return POINT_ORDER ? order[k] : k; }
+
 #endif

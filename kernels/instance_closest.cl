@@ -56,9 +56,6 @@
 #ifndef STACK_SIZE
 #define STACK_SIZE 64
 #endif
-#ifndef POINT_ORDER
-#define POINT_ORDER 0
-#endif
 
 #define FLAG_OVERFLOW 1    /* a push found the stack full: a subtree was skipped */
 #define FLAG_VISIT_LIMIT 2 /* more nodes visited than the tree has: not a tree */
@@ -203,11 +200,7 @@ __kernel void instance_closest(__global const float4 *top_nodes, __global const 
                                __global int *flags) {
     const int k = get_global_id(0);
     if (k >= count) return;
-#if POINT_ORDER
-    const int i = order[k];   /* points in Morton order of their cells (ray_order.cl) */
-#else
-    const int i = k;
-#endif
+    const int i = point_index(order, k);
     const real3 p = to_real3(load_float3(points, i));
     Best best;
     best.best2 = (real)max_distance * (real)max_distance;

@@ -78,3 +78,19 @@ __kernel void point_keys(__global const float *points, const int count, const in
         order[i] = i;
     }
 }
+
+/* The query points in the order of point_keys' sort: sorted[k] = points[order[k]],
+ * so that a walk answering the points in that order reads them as one run
+ * (kernels/winding.cl, POINT_ORDER=1): the loads here are independent of each
+ * other and overlap, where a walk's first load of a scattered point waits. */
+__kernel void gather_points(__global const float *points, __global const int *order,
+                            const int count, const int per_item, __global float *sorted) {
+    const int gid = get_global_id(0);
+    const int last = chunk_last(gid, per_item, count);
+    for (int k = chunk_first(gid, per_item, count); k < last; ++k) {
+        const int i = order[k];
+        sorted[3 * k] = points[3 * i];
+        sorted[3 * k + 1] = points[3 * i + 1];
+        sorted[3 * k + 2] = points[3 * i + 2];
+    }
+}

@@ -36,6 +36,10 @@
  * Defines:
  *   STACK_SIZE=n  stack entries; a push beyond n sets FLAG_OVERFLOW and skips
  *                 that subtree (the host sizes it from the tree's depth).
+ *   POINT_ORDER=1 work-item k answers point order[k] (a permutation: nearby
+ *                 points one after another walk the same records), which
+ *                 `points` holds at k (ray_order.cl, gather_points); the
+ *                 answers stay in the points' own slots.
  *   ORDER=2|1     the order of the far nodes' expansion (the moments' rows:
  *                 37 or 16); 2 unless told.
  *   WIDE=1        walk the wide records (`nodes` is then the records, the root
@@ -148,12 +152,13 @@ inline float lanes_sum(floatw v) {
 __kernel void winding_numbers(__global const float4 *nodes, __global const float *moments,
                               __global const float *vertices, __global const uint *slot_faces,
                               const int root, const int root_y, const int num_nodes,
-                              __global const float *points, const int count,
-                              const float beta2,
+                              __global const float *points, __global const int *order,
+                              const int count, const float beta2,
                               __global float *winding, __global int *flags) {
-    const int i = get_global_id(0);
-    if (i >= count) return;
-    const float3 q = load_float3(points, i);
+    const int k = get_global_id(0);
+    if (k >= count) return;
+    const int i = point_index(order, k);
+    const float3 q = load_float3(points, k);
     float w = 0.0f;
     int flag = 0;
     int stack[STACK_SIZE];

@@ -85,6 +85,18 @@ def point_order(ctx: Context, points: cl.Buffer, count: int, lower: np.ndarray,
     return result.values, [ev, *result.events]
 
 
+def gather_points(ctx: Context, points: cl.Buffer, order: cl.Buffer, count: int,
+                  wait_for: list[cl.Event] | None = None) -> tuple[cl.Buffer, cl.Event]:
+    """``float32 (count, 3)`` device buffer: ``points[order]`` (``order`` from
+    :func:`point_order`), for a kernel that answers the points in that order and reads
+    them as one run. The caller gives the returned buffer back to ``ctx.memory``."""
+    out = ctx.memory.alloc(12 * max(count, 1))
+    launch = ctx.launch(count, min_per_item=4096)
+    ev = run(ctx, KERNEL_FILE, "gather_points", launch, points, order, count, launch.per_item,
+             out, wait_for=wait_for)
+    return out, ev
+
+
 # -- numpy twin ---------------------------------------------------------------------
 
 def _cells(t: np.ndarray, bits: int = CELL_BITS) -> np.ndarray:

@@ -52,6 +52,7 @@ import pyopencl as cl
 from .. import device as dev
 from ..layout import children_of, is_leaf, node_depths, prim_range_of
 from .closest import check_points, closest_points, walk_of
+from .ray_order import MIN_POINTS, gather_points, point_order
 from .target import QueryTarget
 from .wide import Wide
 
@@ -279,16 +280,26 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
         for start in range(0, n, batch):
             stop = min(n, start + batch)
             m = stop - start
-            up = cl.enqueue_copy(ctx.queue, bufs["points"], p[start:stop], is_blocking=False)
+            ups = [cl.enqueue_copy(ctx.queue, bufs["points"], p[start:stop], is_blocking=False)]
+            order = sorted_points = None
+            if m >= MIN_POINTS:
+                # nearby points one after another, read as one run (bench/README.md)
+                order, ups = point_order(ctx, bufs["points"], m, *tree.root_box())
+                sorted_points, ev = gather_points(ctx, bufs["points"], order, m, wait_for=ups)
+                ups = [ev]
             launch = dev.Launch(m, 1, -(-m // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
             ev = dev.run(ctx, KERNEL_FILE, "winding_numbers", launch, records, moments,
                          target.mesh.vertices_buf, slot_faces, root, root_y, tree.num_nodes,
-                         bufs["points"], m, beta2, bufs["w"], bufs["flags"], defines=defines,
-                         wait_for=[up])
+                         bufs["points"] if order is None else sorted_points,
+                         order if order is not None else bufs["flags"], m, beta2,
+                         bufs["w"], bufs["flags"],
+                         defines={**defines, "POINT_ORDER": int(order is not None)},
+                         wait_for=ups)
             cl.enqueue_copy(ctx.queue, out[start:stop], bufs["w"], wait_for=[ev], is_blocking=False)
             cl.enqueue_copy(ctx.queue, flags[start:stop], bufs["flags"], wait_for=[ev],
                             is_blocking=False)
             ctx.queue.finish()
+            mem.free(order, sorted_points)
     finally:
         mem.free(*bufs.values())
     if (flags & FLAG_OVERFLOW).any():

@@ -174,13 +174,14 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
             for clipped in ({}, {"EXACT_LEAVES": 0}):
                 add(instances.KERNEL_FILE, {**traverse.kernel_defines(ctx, any_hit, test, counters,
                                                                       stack), **clipped})
-    # winding.cl: one stack size per bucket, through binary nodes and wide records of
-    # either width
-    for ctx, stack in itertools.product(ctxs, traverse.STACK_BUCKETS):
-        add(winding.KERNEL_FILE, {"STACK_SIZE": stack, **winding.kernel_defines(ctx)})
+    # winding.cl: one stack size per bucket, the points in their order or sorted, through
+    # binary nodes and wide records of either width
+    for ctx, stack, ordered in itertools.product(ctxs, traverse.STACK_BUCKETS, (0, 1)):
+        add(winding.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered,
+                                  **winding.kernel_defines(ctx)})
         for width in wide.WIDTHS:
-            add(winding.KERNEL_FILE, {"STACK_SIZE": stack, "WIDE": 1, "WIDTH": width,
-                                      **winding.kernel_defines(ctx)})
+            add(winding.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered, "WIDE": 1,
+                                      "WIDTH": width, **winding.kernel_defines(ctx)})
     # closest.cl: one stack size per bucket (NO_FP64 is for tests only), through binary
     # nodes and wide records of either width
     for stack, ordered in itertools.product(traverse.STACK_BUCKETS, (0, 1)):

@@ -81,3 +81,23 @@ def test_same_answers_whether_the_rays_are_ordered_or_not(monkeypatch, mesh):
     for field in ("t", "u", "v", "prim", "nodes_visited", "tris_tested", "overflow"):
         assert np.array_equal(getattr(a, field), getattr(b, field)), field
     assert np.array_equal(blocked_a, blocked_b)
+
+
+def test_gathered_points_are_the_points_in_their_order():
+    """kernels/ray_order.cl gather_points against its numpy twin, points[order], exactly
+    (a copy), over a batch that spans several work-items."""
+    from lbvh.queries.ray_order import gather_points, point_order
+    ctx = dev.get_context(None)
+    rng = np.random.default_rng(5)
+    p = rng.normal(size=(20_011, 3)).astype(np.float32)
+    p[::101] = np.float32([-0.0, np.inf, 1e-40])      # signed zero, inf, a denormal: copied
+    buf = dev.to_device(ctx, p)
+    order, evs = point_order(ctx, buf, len(p), np.full(3, -3, np.float32),
+                             np.full(3, 3, np.float32))
+    out, ev = gather_points(ctx, buf, order, len(p), wait_for=evs)
+    ev.wait()
+    perm = dev.from_device(ctx, order, np.int32, (len(p),))
+    got = dev.from_device(ctx, out, np.float32, p.shape)
+    ctx.memory.free(order, out)
+    assert sorted(perm.tolist()) == list(range(len(p)))
+    assert np.array_equal(got.view(np.uint32), p[perm].view(np.uint32))

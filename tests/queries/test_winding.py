@@ -309,3 +309,23 @@ def test_bad_points_and_options():
         with pytest.raises(ValueError, match="beta"):
             bvh.contains(p[:3], beta=beta)
     assert bvh.winding_numbers(np.zeros((0, 3))).shape == (0,)
+
+
+def test_points_in_morton_order_give_the_same_winding_numbers(monkeypatch):
+    """Large batches are answered in the Morton order of the points' cells, the points
+    gathered in that order first (kernels/ray_order.cl): the same numbers bit for bit,
+    each in its own slot, through the binary nodes and the wide records."""
+    import lbvh.queries.winding as winding_module
+    v, f = shipped_mesh("teapot.obj")
+    p = box_points(v, 3000, 9)
+    bvh = lbvh.build(v, f)
+    binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
+    assert not binary.wide_records(max_bytes=0).packed
+    plain = [bvh.winding_numbers(p), binary.winding_numbers(p)]
+    monkeypatch.setattr(winding_module, "MIN_POINTS", 1000)
+    ordered = [bvh.winding_numbers(p), binary.winding_numbers(p)]
+    for a, b in zip(plain, ordered):
+        assert np.array_equal(a.view(np.uint32), b.view(np.uint32))
+    # and in batches, some above the threshold and some below
+    batched = winding_module.winding_numbers(bvh, p, batch_size=1300)
+    assert np.array_equal(batched.view(np.uint32), plain[0].view(np.uint32))
