@@ -34,12 +34,11 @@ that small: against the first-order expansion at ``beta = 2`` (what came
 before) it gives 1.7x, 1.7x and 1.9x the points per second on the bunny, Sponza
 and a 1M-triangle terrain, with a largest error on the tests' meshes of 0.023
 instead of 0.059 and about the same on those scenes (0.023 against 0.021;
-bench/README.md). The
-walk goes through the tree's wide records
-where they are packed (the moments then per record, :func:`wide_moments`), a
-record's lanes tested and expanded in one vector computation: on the 2-core
-Zen 3 machine 3.8x, 1.6x and 4.0x as many points per second as the binary walk
-on the bunny, Sponza and a 1M-triangle terrain (bench/README.md). The twin is
+bench/README.md). The walk goes through the tree's wide records where they
+are packed (the moments then per record, :func:`wide_moments`), a record's
+lanes tested and expanded in one vector computation: on the 2-core Zen 3
+machine 3.8x, 1.6x and 4.0x as many points per second as the binary walk on
+the bunny, Sponza and a 1M-triangle terrain (bench/README.md). The twin is
 :func:`winding_numbers_numpy`, the exact float64 sum over every triangle.
 """
 from __future__ import annotations
@@ -197,10 +196,10 @@ def node_moments(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices:
 
 def wide_moments(moments: np.ndarray, lanes: np.ndarray) -> np.ndarray:
     """``float32 (records, rows, width)``: what kernels/winding.cl reads of each wide
-    record (WIDE=1), ``rows`` those of ``moments`` (37 or 16): row ``k`` holds ``moments[:, k]`` (:func:`node_moments`) of each
-    lane's binary node (``lanes``, ``int32 (records, width)``, -1 for an empty lane,
-    as :class:`lbvh.queries.wide.Wide` keeps them); an empty lane has zeros and
-    ``R^2 = -1``, so the kernel takes it for far and adds nothing."""
+    record (WIDE=1), ``rows`` those of ``moments`` (37 or 16): row ``k`` holds
+    ``moments[:, k]`` (:func:`node_moments`) of each lane's binary node (``lanes``,
+    ``int32 (records, width)``, -1 for an empty lane, as :class:`lbvh.queries.wide.Wide`
+    keeps them); an empty lane has zeros and ``R^2 = -1``, so the kernel takes it for far and adds nothing."""
     lanes = np.asarray(lanes)
     out = np.asarray(moments, np.float32)[np.maximum(lanes, 0)].transpose(0, 2, 1).copy()
     empty = np.broadcast_to((lanes < 0)[:, None, :], out.shape)
@@ -276,12 +275,12 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
     batch = int(min(batch_size, n))
     bufs = {"points": mem.alloc(12 * batch, flags=cl.mem_flags.READ_ONLY),
             "w": mem.alloc(4 * batch), "flags": mem.alloc(4 * batch)}
+    order = sorted_points = None
     try:
         for start in range(0, n, batch):
             stop = min(n, start + batch)
             m = stop - start
             ups = [cl.enqueue_copy(ctx.queue, bufs["points"], p[start:stop], is_blocking=False)]
-            order = sorted_points = None
             if m >= MIN_POINTS:
                 # nearby points one after another, read as one run (bench/README.md)
                 order, ups = point_order(ctx, bufs["points"], m, *tree.root_box())
@@ -300,8 +299,9 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
                             is_blocking=False)
             ctx.queue.finish()
             mem.free(order, sorted_points)
+            order = sorted_points = None
     finally:
-        mem.free(*bufs.values())
+        mem.free(*bufs.values(), order, sorted_points)
     if (flags & FLAG_OVERFLOW).any():
         bad = np.flatnonzero(flags & FLAG_OVERFLOW)
         raise RuntimeError(f"winding_numbers: the traversal stack overflowed for {len(bad)} "
