@@ -199,7 +199,8 @@ def wide_moments(moments: np.ndarray, lanes: np.ndarray) -> np.ndarray:
     record (WIDE=1), ``rows`` those of ``moments`` (37 or 16): row ``k`` holds
     ``moments[:, k]`` (:func:`node_moments`) of each lane's binary node (``lanes``,
     ``int32 (records, width)``, -1 for an empty lane, as :class:`lbvh.queries.wide.Wide`
-    keeps them); an empty lane has zeros and ``R^2 = -1``, so the kernel takes it for far and adds nothing."""
+    keeps them); an empty lane has zeros and ``R^2 = -1``, so the kernel takes it for
+    far and adds nothing."""
     lanes = np.asarray(lanes)
     out = np.asarray(moments, np.float32)[np.maximum(lanes, 0)].transpose(0, 2, 1).copy()
     empty = np.broadcast_to((lanes < 0)[:, None, :], out.shape)
