@@ -30,7 +30,8 @@ through embreex when importable). Embree through embreex has only closest and
 any hit, so it is not here; no peer exposes bare winding numbers (warp's are
 inside its signed query). Every call takes numpy arrays and answers numpy arrays
 (transfers and the peers' wrapping included); builds, and lbvh's winding moments
-(made on a tree's first winding query), are not timed. trimesh is pure numpy and
+(made on a tree's first winding query), are not in the rates: the moments' own
+time is in the scene table, on the device and by the host twins. trimesh is pure numpy and
 slow: it runs on the first ``--subsample`` points (closest and signed distance)
 or ``--ray-subsample`` points, rays and boxes (inside, every hit, boxes), its
 rate is per second on those. A tracer that has spent ``--budget`` seconds on a
@@ -93,6 +94,7 @@ from lbvh import device as dev
 from lbvh.queries.closest import closest_points_numpy
 from lbvh.queries.overlap import overlapping_numpy
 from lbvh.queries.winding import winding_numbers_numpy
+from lbvh.queries import winding_moments
 from lbvh.rendering.scene import load_mesh
 from lbvh.verification.error_bound import (CLOSEST_BOUND_ULPS, T_BOUND_ULPS, WINDING_BOUND,
                                            closest_distance_bound, t_bound)
@@ -225,6 +227,27 @@ class Tracer:
     answers: dict[str, Callable[..., Any]]
     subsample: dict[str, int] = field(default_factory=dict)
     build_seconds: float = 0.0
+    moments: dict[str, float] = field(default_factory=dict)
+
+
+INSIDE_QUERIES = ("signed_distance", "contains", "winding_numbers")
+
+
+def time_moments(bvh: lbvh.BVH, v: np.ndarray, f: np.ndarray) -> dict[str, float]:
+    """Seconds to make the winding moments of ``bvh`` (what its first inside query pays
+    before any point is answered): on the device (``bvh.winding_moments()``, the
+    kernels compiled first) and by the numpy twins on the host in the same run (what
+    it paid before kernels/winding_moments.cl)."""
+    wide = bvh.wide_records()
+    bvh.ctx.memory.free(winding_moments.make_moments(bvh.ctx, bvh.tree, bvh.mesh, wide))
+    t0 = time.perf_counter()
+    bvh.winding_moments()
+    device = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    rows = winding_moments.node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f)
+    if wide.packed and wide.count:
+        winding_moments.wide_moments(rows, winding_moments.read_lanes(bvh.ctx, wide))
+    return {"device": device, "host": time.perf_counter() - t0}
 
 
 def lbvh_answers(bvh: lbvh.BVH) -> dict[str, Callable[..., Any]]:
@@ -248,7 +271,9 @@ def make_tracers(v: np.ndarray, f: np.ndarray, args: argparse.Namespace, peers: 
     for name, options in (("lbvh", {}), ("lbvh+collapse", {"collapse": True})):
         t0 = time.perf_counter()
         bvh = lbvh.build(v, f, device=args.device, **options)
-        out.append(Tracer(name, "lbvh", lbvh_answers(bvh), build_seconds=time.perf_counter() - t0))
+        built = time.perf_counter() - t0
+        moments = time_moments(bvh, v, f) if set(INSIDE_QUERIES) & set(args.queries) else {}
+        out.append(Tracer(name, "lbvh", lbvh_answers(bvh), build_seconds=built, moments=moments))
     if "warp" in peers:
         warp = peers["warp"]
         setup, build, mesh = warp.build(v, f)
@@ -453,7 +478,8 @@ def bench_scene(name: str, v: np.ndarray, f: np.ndarray, args: argparse.Namespac
                      **judge(c.query, answer, ref)})
     info = {"scene": name, "triangles": int(len(f)), "vertices": int(len(v)),
             "boundary_edges": boundary_edges(f),
-            "builds": {tr.name: tr.build_seconds for tr in tracers}}
+            "builds": {tr.name: tr.build_seconds for tr in tracers},
+            "winding_moments": {tr.name: tr.moments for tr in tracers if tr.moments}}
     if "winding" in ref._cache:
         info["inside_fraction"] = float(np.mean(ref.winding > 0.5))
     if "hits" in ref._cache:
@@ -539,14 +565,22 @@ def markdown(report: dict) -> str:
              "ill-defined on an open mesh (boundary edges > 0): there the parity tests of "
              "Open3D and trimesh answer another question, and lbvh's own agreement can fall "
              "where the exact w is near 1/2.", "",
+             "The winding moments (made once per tree, at its first inside query; not in the "
+             "rates): seconds on the device (kernels/winding_moments.cl) and by the numpy "
+             "twins on the host, the same tree in the same run, default tree / collapsed.", "",
              "| scene | triangles | boundary edges | judged inside | mean hits per ray | "
-             "mean triangles per box |", "|---|---:|---:|---:|---:|---:|"]
+             "mean triangles per box | winding moments, device | host twins |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for sc in report["scenes"]:
         def opt(key, fmt):
             return format(sc[key], fmt) if key in sc else "-"
+        mom = sc.get("winding_moments", {})
+
+        def secs(where):
+            return " / ".join(f"{mom[t][where]:.2f}" for t in mom) or "-"
         lines.append(f"| {sc['scene']} | {sc['triangles']:,} | {sc['boundary_edges']:,} | "
                      f"{opt('inside_fraction', '.3f')} | {opt('mean_hits', '.2f')} | "
-                     f"{opt('mean_overlaps', '.1f')} |")
+                     f"{opt('mean_overlaps', '.1f')} | {secs('device')} | {secs('host')} |")
     lines += [""] + summary_lines(report)
     rows = report["rows"]
     base = {(r["scene"], r["query"]): r["per_second"] for r in rows if r["tracer"] == "lbvh"}

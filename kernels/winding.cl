@@ -18,14 +18,14 @@
  * the farthest corner of the node's box (every triangle of the node lies
  * within R of p).
  *
- * Moments, ROWS floats per node (the host computes them, winding.py):
+ * Moments, ROWS floats per node (winding_moments.cl makes them):
  *   [0..2] p, [3] R^2, [4..6] N, [7..15] M row by row (M[j][k] = m[7 + 3j + k]),
  *   with ORDER=2 also [16..18] g and [19..36] K (SECOND_ORDER_W).
  * beta2 is beta^2.
  *
  * With WIDE=1 the walk goes through the tree's wide records (kernels/wide.cl)
  * instead: `moments` then holds, per record, the same ROWS values of each
- * lane's binary node as ROWS rows of WIDTH floats (lbvh/queries/winding.py,
+ * lane's binary node as ROWS rows of WIDTH floats (winding_moments.py
  * wide_moments; an empty lane has R^2 = -1, so it is always far, and adds 0),
  * and one record's lanes are tested and expanded in one vector computation;
  * the lanes that are near are summed (leaves) or pushed (records). Every node
@@ -44,6 +44,13 @@
  *                 37 or 16); 2 unless told.
  *   WIDE=1        walk the wide records (`nodes` is then the records, the root
  *                 their reference (root, root_y)); WIDTH=4 or 8 lanes.
+ *   SCALED=1      every difference (a corner or a node's centre minus q) is
+ *                 multiplied by `scale`, a power of two that brings the mesh to
+ *                 about unit size, and the moments are the scaled mesh's
+ *                 (winding_moments.py winding_scale): the triple products
+ *                 (size^3) and second-order terms (size^4 times distance^3)
+ *                 neither overflow nor underflow float32. SCALED=0 (meshes of
+ *                 extent 2^-12 to 2^12) leaves them as they are.
  */
 #include "common.h"
 
@@ -65,6 +72,15 @@
 #endif
 
 #define FLAG_OVERFLOW 1
+
+#ifndef SCALED
+#define SCALED 0
+#endif
+#if SCALED
+#define SCALE_DIFF(d) ((d) * scale)
+#else
+#define SCALE_DIFF(d) (d)
+#endif
 
 /* atan2(y, x) in float32 within 4e-7 of the exact angle (under 2 ulps of pi),
  * inline: PoCL 3 calls its atan2 out of line, and that call was two thirds of
@@ -100,8 +116,8 @@ inline float atan2_poly(float y, float x) {
  * PoCL 3 called dot and sqrt out of line here (1.19x on Sponza written out;
  * bench/README.md). */
 inline float dot3(float3 u, float3 v) { return u.x * v.x + u.y * v.y + u.z * v.z; }
-inline float solid_angle(float3 q, float3 p0, float3 p1, float3 p2) {
-    const float3 a = p0 - q, b = p1 - q, c = p2 - q;
+inline float solid_angle(float3 q, float3 p0, float3 p1, float3 p2, float scale) {
+    const float3 a = SCALE_DIFF(p0 - q), b = SCALE_DIFF(p1 - q), c = SCALE_DIFF(p2 - q);
     const float4 l = sqrt4((float4)(dot3(a, a), dot3(b, b), dot3(c, c), 0.0f));
     const float la = l.x, lb = l.y, lc = l.z;
     const float num = a.x * (b.y * c.z - b.z * c.y) + a.y * (b.z * c.x - b.x * c.z) +
@@ -132,7 +148,7 @@ inline float solid_angle(float3 q, float3 p0, float3 p1, float3 p2) {
     for (int s = (first); s < (end); ++s)                                                  \
         w += solid_angle(q, load_float3(vertices, slot_faces[3 * s]),                      \
                          load_float3(vertices, slot_faces[3 * s + 1]),                     \
-                         load_float3(vertices, slot_faces[3 * s + 2]));
+                         load_float3(vertices, slot_faces[3 * s + 2]), scale);
 
 #if WIDE
 #include "wide_rows.h"
@@ -153,7 +169,7 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
                               __global const float *vertices, __global const uint *slot_faces,
                               const int root, const int root_y, const int num_nodes,
                               __global const float *points, __global const int *order,
-                              const int count, const float beta2,
+                              const int count, const float beta2, const float scale,
                               __global float *winding, __global int *flags) {
     const int k = get_global_id(0);
     if (k >= count) return;
@@ -173,8 +189,9 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
         for (;;) {
             if (visits++ < num_nodes) {
                 __global const floatw *m = rows + ROWS * record;
-                const floatw rx = m[0] - (floatw)(q.x), ry = m[1] - (floatw)(q.y),
-                             rz = m[2] - (floatw)(q.z);
+                const floatw rx = SCALE_DIFF(m[0] - (floatw)(q.x)),
+                             ry = SCALE_DIFF(m[1] - (floatw)(q.y)),
+                             rz = SCALE_DIFF(m[2] - (floatw)(q.z));
                 const floatw r2 = rx * rx + ry * ry + rz * rz;
                 const intw far = r2 > (floatw)(beta2) * m[3];
                 /* the far lanes' expansions (Barill et al. 2018), as the binary walk's */
@@ -216,7 +233,7 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
     for (;;) {
         if (node >= 0 && visits++ < num_nodes) {
             __global const float *m = moments + ROWS * node;
-            const float3 r = (float3)(m[0], m[1], m[2]) - q;
+            const float3 r = SCALE_DIFF((float3)(m[0], m[1], m[2]) - q);
             const float r2 = dot(r, r);
             const int a = as_int(nodes[2 * node].w), b = as_int(nodes[2 * node + 1].w);
             if (r2 > beta2 * m[3]) {

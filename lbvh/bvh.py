@@ -29,6 +29,7 @@ from .queries.closest import Closest
 from .queries.overlap import Overlaps
 from .queries.rays import InvalidRays
 from .queries.traverse import DeviceHitArrays, Hits
+from .queries.winding_moments import make_moments
 from .queries.wide import Wide, make_wide, release_wide, wide_buffers, write_records
 from .report import BuildReport, tree_statistics
 from .tree import Mesh, Tree, upload_tree
@@ -214,18 +215,13 @@ class BVH:
     @dev.serialised
     def winding_moments(self) -> cl.Buffer:
         """The moments of the winding number query on the device, made on first use
-        for the walk that :func:`lbvh.queries.closest.walk_of` picks: per wide record
-        (:func:`lbvh.queries.winding.wide_moments`) where the records are packed, else
-        per node (``float32 (num_nodes, 16)``, :func:`lbvh.queries.winding.node_moments`);
-        a refit, or records of another width, renew them."""
+        (:func:`lbvh.queries.winding_moments.make_moments`) for the walk that
+        :func:`lbvh.queries.closest.walk_of` picks: per wide record where the records
+        are packed, else per node; a refit, or records of another width, renew them."""
         wide = self.wide_records()
         if self._moments is None or self._moments[0] is not wide:
             self._drop_moments()
-            moments = winding.node_moments(self.nodes, self.prim_order, self.root,
-                                           self.vertices, self.faces, winding.DEFAULT_ORDER)
-            if wide.packed and wide.count:
-                moments = winding.wide_moments(moments, winding.read_lanes(self.ctx, wide))
-            buf = self.ctx.memory.upload(moments)
+            buf = make_moments(self.ctx, self.tree, self.mesh, wide, winding.DEFAULT_ORDER)
             self._moments = (wide, buf)
             self._owned.append(buf)
         return self._moments[1]

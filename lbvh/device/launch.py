@@ -35,12 +35,13 @@ class Launch:
 
 def kernel_arg(value: Any) -> Any:
     """A kernel argument as OpenCL takes it: Python ``bool``/``int`` as ``int32``,
-    ``float`` as ``float32``; numpy scalars and buffers as they are."""
+    ``float`` as ``float32``; numpy scalars (``float64`` too, a subclass of ``float``)
+    and buffers as they are."""
     if isinstance(value, (bool, np.bool_)):
         return np.int32(bool(value))
     if isinstance(value, int):
         return np.int32(value)
-    if isinstance(value, float):
+    if isinstance(value, float) and not isinstance(value, np.generic):
         return np.float32(value)
     if value is None:
         raise TypeError("kernel argument None: pass a buffer (a placeholder for an unused one)")

@@ -29,5 +29,5 @@ class QueryTarget(Protocol):
         """The tree's depth (0 for a root leaf), cached."""
 
     def winding_moments(self) -> cl.Buffer:
-        """The nodes' moments of the winding numbers (:func:`lbvh.queries.winding.node_moments`),
+        """The moments of the winding numbers (:func:`lbvh.queries.winding_moments.make_moments`),
         cached."""

@@ -23,9 +23,9 @@ How it is computed: near a point the triangles' solid angles are summed
 exactly (Van Oosterom & Strackee 1983) in float32; a node of the tree farther
 than ``beta`` times its radius from the point is replaced by the expansion of
 its triangles' solid angles about their area-weighted centroid up to the
-second order (Barill et al. 2018; :func:`node_moments` computes the moments
-once per tree, in float64, and the :class:`lbvh.BVH` keeps them;
-:func:`expansion_numpy` is the twin of the far-node term). ``beta = 1.3`` (the
+second order (Barill et al. 2018; :mod:`lbvh.queries.winding_moments` makes the
+moments once per tree, in float64 on the device, and the :class:`lbvh.BVH` keeps
+them; :func:`expansion_numpy` is the twin of the far-node term). ``beta = 1.3`` (the
 default) keeps ``|w - w_exact|`` within
 :data:`lbvh.verification.error_bound.WINDING_BOUND` on the tests' meshes and
 the bench's scenes, far below the 1/2 that would flip ``contains``; a larger
@@ -35,7 +35,7 @@ before) it gives 1.7x, 1.7x and 1.9x the points per second on the bunny, Sponza
 and a 1M-triangle terrain, with a largest error on the tests' meshes of 0.023
 instead of 0.059 and about the same on those scenes (0.023 against 0.021;
 bench/README.md). The walk goes through the tree's wide records where they
-are packed (the moments then per record, :func:`wide_moments`), a record's
+are packed (the moments then per record), a record's
 lanes tested and expanded in one vector computation: on the 2-core Zen 3
 machine 3.8x, 1.6x and 4.0x as many points per second as the binary walk on
 the bunny, Sponza and a 1M-triangle terrain (bench/README.md). The twin is
@@ -49,16 +49,14 @@ import numpy as np
 import pyopencl as cl
 
 from .. import device as dev
-from ..layout import children_of, is_leaf, node_depths, prim_range_of
 from .closest import check_points, closest_points, walk_of
 from .ray_order import MIN_POINTS, gather_points, point_order
 from .target import QueryTarget
-from .wide import Wide
+from .winding_moments import DEFAULT_ORDER, ROWS_ORDER1, ROWS_ORDER2, winding_scale
 
 KERNEL_FILE = "winding.cl"
 
-__all__ = ["DEFAULT_BETA", "DEFAULT_ORDER", "node_moments", "wide_moments", "expansion_numpy",
-           "winding_numbers", "contains", "signed_distance", "winding_numbers_numpy"]
+__all__ = ["DEFAULT_BETA", "DEFAULT_ORDER", "expansion_numpy", "winding_numbers", "contains", "signed_distance", "winding_numbers_numpy"]
 
 #: The accuracy parameter of Barill et al. 2018: a node is expanded only where the point
 #: lies farther than beta times its radius (with the second-order expansion; the
@@ -71,158 +69,14 @@ FLAG_OVERFLOW = 1
 _WORK_GROUP = 64
 
 
-#: Floats per node of the first-order moments (:func:`node_moments` with ``order=1``).
-ROWS_ORDER1 = 16
-#: Floats per node with the second-order terms (``order=2``, the default).
-ROWS_ORDER2 = 37
-#: The order of the expansion of far nodes (Barill et al. 2018 use 2).
-DEFAULT_ORDER = 2
-
-# the six pairs (j, k), j <= k, of the symmetric second moments, in the kernel's order
-_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
-
-
-def _triangle_terms(vertices: np.ndarray, faces: np.ndarray, order: int = 1) -> np.ndarray:
-    """``float64 (F, 16)`` per triangle (``(F, 34)`` with ``order=2``): area, area *
-    centroid (3), vector area ``a`` (3), the 3x3 outer product ``a c^T`` row by row (9);
-    with ``order=2`` also ``a_i Q_jk`` for ``i`` = x, y, z and the six pairs ``jk`` of
-    :data:`_PAIRS` (18), ``Q`` the mean of ``x x^T`` over the triangle,
-    ``(sum_v v v^T + 9 c c^T) / 12``. The array is the transpose of a C-ordered
-    ``(columns, F)`` one: each term is contiguous."""
-    v = np.asarray(vertices, np.float64)
-    f = np.asarray(faces, np.int64)
-    # corner k's coordinate j: x[k][j], contiguous (F,) arrays
-    x = [[v[f[:, k], j] for j in range(3)] for k in range(3)]
-    e1 = [x[1][j] - x[0][j] for j in range(3)]
-    e2 = [x[2][j] - x[0][j] for j in range(3)]
-    a = [0.5 * (e1[1] * e2[2] - e1[2] * e2[1]), 0.5 * (e1[2] * e2[0] - e1[0] * e2[2]),
-         0.5 * (e1[0] * e2[1] - e1[1] * e2[0])]
-    area = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
-    c = [(x[0][j] + x[1][j] + x[2][j]) / 3.0 for j in range(3)]
-    out = np.empty((16 if order == 1 else 34, len(f)))
-    out[0] = area
-    for j in range(3):
-        out[1 + j] = area * c[j]
-        out[4 + j] = a[j]
-        for k in range(3):
-            out[7 + 3 * j + k] = a[j] * c[k]
-    if order == 2:
-        for m, (j, k) in enumerate(_PAIRS):
-            q = (x[0][j] * x[0][k] + x[1][j] * x[1][k] + x[2][j] * x[2][k]
-                 + 9.0 * c[j] * c[k]) / 12.0
-            for i in range(3):
-                out[16 + 3 * m + i] = a[i] * q
-    return out.T
-
-
-def node_moments(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices: np.ndarray,
-                 faces: np.ndarray, order: int = DEFAULT_ORDER) -> np.ndarray:
-    """``float32 (num_nodes, 37)`` (``order=2``) or ``(num_nodes, 16)`` (``order=1``):
-    what kernels/winding.cl reads of each node.
-
-    ``[0:3]`` the area-weighted centroid ``p`` of the node's triangles (the box's
-    centre if their area is 0), ``[3]`` ``R^2``, ``R`` the distance from ``p`` to the
-    farthest corner of the node's box, ``[4:7]`` ``N``, the sum of the triangles'
-    vector areas, ``[7:16]`` ``M = sum a_t (c_t - p)^T`` row by row. With ``order=2``
-    the second-order terms of ``H_ijk = sum_t a_t,i S_t,jk``, ``S_t`` the mean of
-    ``(x - p)(x - p)^T`` over triangle ``t``, in the form the kernel contracts:
-    ``[16:19]`` ``g = -3/2 (2 u + t)``, ``u_k = H_iik``, ``t_i = H_ijj``; ``[19:37]``
-    ``15/2 H_ijk`` for ``i`` = x, y, z, each over the pairs xx, yy, zz, xy, xz, yz, the
-    last three doubled. Sums in float64 about the centre of the mesh's box (so that
-    meshes far from the origin lose no digits): leaves over their slots, internal
-    nodes from their children level by level, then shifted to ``p`` and rounded once.
-    """
-    if order not in (1, 2):
-        raise ValueError(f"order: {order!r}; expected 1 or 2")
-    n = len(nodes)
-    v = np.asarray(vertices, np.float64)
-    shift = 0.5 * (v.min(axis=0) + v.max(axis=0)) if len(v) else np.zeros(3)
-    terms = _triangle_terms(v - shift, np.asarray(faces)[np.asarray(prim_order)], order).T
-    cols = np.zeros((len(terms), n))            # (columns, nodes): each term contiguous
-    leaf = is_leaf(nodes)
-    first, count = prim_range_of(nodes).T
-    lf = np.flatnonzero(leaf & (count > 0))
-    # a sum over each leaf's own slots, term by term (not prefix differences, which
-    # would lose a small leaf's digits to the sums of the whole mesh)
-    at, k = lf, 0
-    while len(at):
-        part = terms[:, first[at] + k]
-        if k == 0:
-            cols[:, at] = part
-        else:
-            cols[:, at] += part
-        k += 1
-        at = at[count[at] > k]
-    del terms
-    kids = children_of(nodes)
-    if n > 1:
-        parent = np.full(n, -1, np.int64)
-        inner = np.flatnonzero(~leaf)
-        parent[kids[inner, 0]] = inner
-        parent[kids[inner, 1]] = inner
-        depth = node_depths(parent, root)
-        for level in range(int(depth.max()) - 1, -1, -1):
-            at = inner[depth[inner] == level]
-            cols[:, at] = cols[:, kids[at, 0]] + cols[:, kids[at, 1]]
-    lower = nodes["lower"].astype(np.float64).T - shift[:, None]
-    upper = nodes["upper"].astype(np.float64).T - shift[:, None]
-    area = cols[0]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        centre = np.where(area > 0, cols[1:4] / area, 0.5 * (lower + upper))
-    far = np.maximum(np.abs(upper - centre), np.abs(centre - lower))
-    out = np.empty((ROWS_ORDER1 if order == 1 else ROWS_ORDER2, n), np.float32)
-    out[0:3] = centre + shift[:, None]
-    out[3] = (far * far).sum(axis=0)
-    big_n = cols[4:7]
-    out[4:7] = big_n
-    b = cols[7:16].reshape(3, 3, n)        # B_ij = sum a_i c_j
-    # M = B - N p^T
-    out[7:16] = (b - big_n[:, None, :] * centre[None, :, :]).reshape(9, n)
-    if order == 2:
-        # H_ijk = sum a_i Q_jk - B_ij p_k - B_ik p_j + N_i p_j p_k, B = sum a c^T
-        h = {}
-        for m, (j, k) in enumerate(_PAIRS):
-            h[j, k] = h[k, j] = (cols[16 + 3 * m:19 + 3 * m] - b[:, j] * centre[k]
-                                 - b[:, k] * centre[j] + big_n * (centre[j] * centre[k]))
-        u = [sum(h[i, k][i] for i in range(3)) for k in range(3)]     # u_k = H_iik
-        t = [sum(h[j, j][i] for j in range(3)) for i in range(3)]     # t_i = H_ijj
-        for k in range(3):
-            out[16 + k] = -1.5 * (2.0 * u[k] + t[k])
-        for i in range(3):
-            for m, (j, k) in enumerate(_PAIRS):
-                out[19 + 6 * i + m] = (7.5 if j == k else 15.0) * h[j, k][i]
-    return np.ascontiguousarray(out.T)
-
-
-def wide_moments(moments: np.ndarray, lanes: np.ndarray) -> np.ndarray:
-    """``float32 (records, rows, width)``: what kernels/winding.cl reads of each wide
-    record (WIDE=1), ``rows`` those of ``moments`` (37 or 16): row ``k`` holds
-    ``moments[:, k]`` (:func:`node_moments`) of each lane's binary node (``lanes``,
-    ``int32 (records, width)``, -1 for an empty lane, as :class:`lbvh.queries.wide.Wide`
-    keeps them); an empty lane has zeros and ``R^2 = -1``, so the kernel takes it for
-    far and adds nothing."""
-    lanes = np.asarray(lanes)
-    out = np.asarray(moments, np.float32)[np.maximum(lanes, 0)].transpose(0, 2, 1).copy()
-    empty = np.broadcast_to((lanes < 0)[:, None, :], out.shape)
-    out[empty] = 0.0
-    out[:, 3][lanes < 0] = -1.0
-    return out
-
-
-def read_lanes(ctx: dev.Context, wide: Wide) -> np.ndarray:
-    """``int32 (records, width)``: the binary node of each lane of the records."""
-    lanes = np.empty((wide.count, wide.width), np.int32)
-    if wide.count:
-        cl.enqueue_copy(ctx.queue, lanes, wide.lanes, is_blocking=True)
-    return lanes
-
-
-def kernel_defines(ctx: dev.Context) -> dict[str, int]:
-    """kernels/winding.cl's device-wide choices: ``INLINE_SQRT`` where the compiler is
-    clang's (kernels/common.h: its inline square root; 1.09x on Sponza's winding
-    numbers, bench/README.md); ``ORDER``, that of the moments the trees keep
-    (:data:`DEFAULT_ORDER`)."""
-    return {"INLINE_SQRT": int(ctx.compiler_is_clang), "ORDER": DEFAULT_ORDER}
+def kernel_defines(ctx: dev.Context, scaled: bool = False) -> dict[str, int]:
+    """kernels/winding.cl's choices: ``INLINE_SQRT`` where the compiler is clang's
+    (kernels/common.h: its inline square root; 1.09x on Sponza's winding numbers,
+    bench/README.md); ``ORDER``, that of the moments the trees keep
+    (:data:`DEFAULT_ORDER`); ``SCALED`` for a mesh whose
+    :func:`~lbvh.queries.winding_moments.winding_scale` is not 1."""
+    return {"INLINE_SQRT": int(ctx.compiler_is_clang), "ORDER": DEFAULT_ORDER,
+            "SCALED": int(bool(scaled))}
 
 
 def _check_beta(beta: Any) -> np.float32:
@@ -270,7 +124,8 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
         return out
     ctx, tree, mem = target.ctx, target.tree, target.ctx.memory
     (records, root, root_y), defines = walk_of(target)
-    defines = {**defines, **kernel_defines(ctx)}
+    scale = winding_scale(target.mesh.vertices)
+    defines = {**defines, **kernel_defines(ctx, scale != 1.0)}
     moments = target.winding_moments()
     slot_faces = target.slot_faces()
     batch = int(min(batch_size, n))
@@ -292,7 +147,7 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
                          target.mesh.vertices_buf, slot_faces, root, root_y, tree.num_nodes,
                          bufs["points"] if order is None else sorted_points,
                          order if order is not None else bufs["flags"], m, beta2,
-                         bufs["w"], bufs["flags"],
+                         np.float32(scale), bufs["w"], bufs["flags"],
                          defines={**defines, "POINT_ORDER": int(order is not None)},
                          wait_for=ups)
             cl.enqueue_copy(ctx.queue, out[start:stop], bufs["w"], wait_for=[ev], is_blocking=False)
@@ -347,8 +202,8 @@ def winding_numbers_numpy(vertices: np.ndarray, faces: np.ndarray, points: np.nd
 def expansion_numpy(moments: np.ndarray, points: np.ndarray) -> np.ndarray:
     """The twin of kernels/winding.cl's far-node term: ``float64 (K, N)``, the winding
     number that the expansion of each node of ``moments`` (``(K, 16)`` or ``(K, 37)``
-    rows of :func:`node_moments`, its order read from the row length) gives at each
-    point, ``(N, 3)``; in float64 from the float32 moments."""
+    rows of :func:`lbvh.queries.winding_moments.node_moments`, its order read from the
+    row length) gives at each point, ``(N, 3)``; in float64 from the float32 moments."""
     m = np.asarray(moments, np.float64)
     r = m[:, None, 0:3] - np.asarray(points, np.float64)[None, :, :]      # p - q
     x, y, z = r[..., 0], r[..., 1], r[..., 2]

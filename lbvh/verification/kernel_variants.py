@@ -35,7 +35,7 @@ from ..builders import collapse
 from ..builders import emit
 from ..builders import morton
 from ..queries import (all_hits, closest, instance_closest, instance_hits, instances, overlap,
-                       ray_order, rays, winding)
+                       ray_order, rays, winding, winding_moments)
 from ..builders import refit
 from ..builders import restructure
 from ..device import sort
@@ -176,12 +176,19 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
                                                                       stack), **clipped})
     # winding.cl: one stack size per bucket, the points in their order or sorted, through
     # binary nodes and wide records of either width
-    for ctx, stack, ordered in itertools.product(ctxs, traverse.STACK_BUCKETS, (0, 1)):
+    # (and for meshes of every size: scaled or not)
+    for ctx, stack, ordered, scaled in itertools.product(ctxs, traverse.STACK_BUCKETS, (0, 1),
+                                                         (False, True)):
         add(winding.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered,
-                                  **winding.kernel_defines(ctx)})
+                                  **winding.kernel_defines(ctx, scaled)})
         for width in wide.WIDTHS:
             add(winding.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered, "WIDE": 1,
-                                      "WIDTH": width, **winding.kernel_defines(ctx)})
+                                      "WIDTH": width, **winding.kernel_defines(ctx, scaled)})
+    # winding_moments.cl: the order the trees keep, into one row per node or the rows of
+    # wide records of either width
+    for width in (None, *wide.WIDTHS):
+        add(winding_moments.KERNEL_FILE,
+            winding_moments.kernel_defines(winding_moments.DEFAULT_ORDER, width))
     # closest.cl: one stack size per bucket (NO_FP64 is for tests only), through binary
     # nodes and wide records of either width
     for stack, ordered in itertools.product(traverse.STACK_BUCKETS, (0, 1)):

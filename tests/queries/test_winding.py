@@ -12,8 +12,10 @@ import lbvh
 from lbvh import device as dev
 from conftest import shared_mesh, shipped_mesh
 from lbvh.queries.closest import closest_points_numpy
-from lbvh.queries.winding import (ROWS_ORDER1, ROWS_ORDER2, expansion_numpy, node_moments,
-                                  read_lanes, wide_moments, winding_numbers_numpy, _triangle_terms)
+from lbvh.queries.winding import expansion_numpy, winding_numbers_numpy
+from lbvh.queries import winding_moments as wm
+from lbvh.queries.winding_moments import (ROWS_ORDER1, ROWS_ORDER2, make_moments, node_moments,
+                                          read_lanes, wide_moments, _triangle_terms)
 from lbvh.verification import meshes
 from lbvh.verification.error_bound import INSIDE_TOLERANCE, WINDING_BOUND
 
@@ -170,6 +172,98 @@ def test_wide_moments_are_the_lanes_moments():
     assert np.array_equal(rows.transpose(0, 2, 1)[present], m[lanes[present]])
     empty = rows.transpose(0, 2, 1)[~present]
     assert (empty[:, 3] == -1).all() and (np.delete(empty, 3, axis=1) == 0).all()
+
+
+def _device_moments(bvh, wide, order):
+    buf = make_moments(bvh.ctx, bvh.tree, bvh.mesh, wide, order)
+    rows = ROWS_ORDER1 if order == 1 else ROWS_ORDER2
+    shape = (wide.count, rows, wide.width) if wide is not None and wide.packed and wide.count \
+        else (bvh.num_nodes, rows)
+    got = np.empty(shape, np.float32)
+    cl.enqueue_copy(bvh.ctx.queue, got, buf, is_blocking=True)
+    bvh.ctx.memory.free(buf)
+    return got
+
+
+@pytest.mark.parametrize("case", ["soup", "collapsed", "sah", "treelets", "far_from_origin",
+                                  "tiny", "1_triangle", "2_triangles"])
+def test_device_moments_are_the_twins_bit_for_bit(case):
+    """kernels/winding_moments.cl runs the twins' float64 operations in their order: the
+    float32 rows are the same bits, per node and in the rows of wide records of either
+    width, on every kind of tree (Karras leaves, leaf lists, host-built trees)."""
+    from lbvh.verification import hard_cases
+    kw = {"collapsed": {"collapse": True}, "sah": {"builder": "sah"},
+          "treelets": {"treelet_rounds": 1}}.get(case, {})
+    if case in ("far_from_origin", "1_triangle", "2_triangles"):
+        c = hard_cases.CASES[case]()
+        v, f = c.vertices, c.faces
+    elif case == "tiny":
+        v, f = meshes.soup(300, 5, 0.05, spread="normal")
+        v = (v * np.float32(1e-30)).astype(np.float32)
+    else:
+        v, f = meshes.soup(2000, 3, 0.05, spread="normal")
+    bvh = lbvh.build(v, f, **kw)
+    assert wm.device_can_make(bvh.ctx, bvh.num_nodes, 2)
+    for order in (1, 2):
+        twin = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f, order)
+        assert np.array_equal(_device_moments(bvh, None, order), twin)
+        for width in (4, 8):
+            wide = bvh.wide_records(width=width)
+            if not wide.count:
+                assert bvh.num_nodes == 1   # a root leaf: no records, one row per node
+                assert np.array_equal(_device_moments(bvh, wide, order), twin)
+                continue
+            rows = wide_moments(twin, read_lanes(bvh.ctx, wide))
+            assert np.array_equal(_device_moments(bvh, wide, order), rows)
+    # and the winding numbers read them (not far_from_origin: on its 0.5 grid of float32
+    # coordinates many points lie on a triangle, where w is 1/2 either way)
+    if case != "far_from_origin":
+        p = box_points(v, 300, 5)
+        exact = winding_numbers_numpy(v, f, p)
+        assert np.abs(bvh.winding_numbers(p) - exact).max() <= WINDING_BOUND
+
+
+@pytest.mark.parametrize("size", [1e-30, 1e-8, 1.0, 1e6, 1e30])
+def test_meshes_of_any_size(size):
+    """An icosphere of radius 1e-30 to 1e30: the winding numbers within the bound and
+    contains exact, through the wide records and the binary nodes. Unscaled, the
+    float32 walk answered NaN from 1e6 (second-order terms of size^4 times distance^3
+    overflow) and below 1e-8 (the moments underflow); winding_scale walks the mesh
+    at about unit size (a power of two: exact), and only where it must."""
+    ico = trimesh.creation.icosphere(subdivisions=2)
+    v = np.float32(ico.vertices * size)
+    f = np.uint32(ico.faces)
+    assert (wm.winding_scale(v) == 1.0) == (size == 1.0)
+    p = np.float32(np.random.default_rng(2).uniform(-1.4, 1.4, (300, 3)) * size)
+    exact = winding_numbers_numpy(v, f, p)
+    bvh = lbvh.build(v, f)
+    binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
+    assert not binary.wide_records(max_bytes=0).packed
+    for tree in (bvh, binary):
+        w = tree.winding_numbers(p)
+        assert np.isfinite(w).all() and np.abs(w - exact).max() <= WINDING_BOUND
+        assert np.array_equal(tree.contains(p), exact > 0.5)
+
+
+def test_moments_without_device_doubles_are_the_twins(monkeypatch):
+    """A device without doubles, or whose largest buffer would not hold the nodes' sums
+    (read from the device), gets the twins' rows from the host: the same numbers."""
+    v, f = meshes.soup(800, 3, 0.05, spread="normal")
+    bvh = lbvh.build(v, f)
+    ctx = bvh.ctx
+    assert wm.device_can_make(ctx, bvh.num_nodes, 2)
+    too_many = ctx.memory.max_alloc // (8 * wm.TERMS[2]) + 1
+    assert not wm.device_can_make(ctx, too_many, 2)
+    assert wm.device_can_make(ctx, too_many, 1) == \
+        (8 * wm.TERMS[1] * too_many <= ctx.memory.max_alloc)
+    wide = bvh.wide_records()
+    device = _device_moments(bvh, wide, 2)
+    monkeypatch.setattr(wm, "device_can_make", lambda *args: False)
+    assert np.array_equal(_device_moments(bvh, wide, 2), device)
+    assert np.array_equal(_device_moments(bvh, None, 2),
+                          node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f))
+    with pytest.raises(ValueError, match="order"):
+        make_moments(ctx, bvh.tree, bvh.mesh, wide, 3)
 
 
 ATAN2_TEST = """
