@@ -344,7 +344,10 @@ def kernel_defines(ctx: dev.Context, any_hit: bool, triangle_test: str, counters
         raise ValueError(f"stack_size: {stack_size!r}; expected a positive integer")
     defines = {"ANY_HIT": int(bool(any_hit)), "COUNTERS": int(bool(counters)),
                "TRIANGLE_TEST": TRIANGLE_TESTS[triangle_test], "STACK_SIZE": int(stack_size),
-               "SLAB_PAD": slab_pad(ctx)}
+               "SLAB_PAD": slab_pad(ctx),
+               # lane_bits by one vmovmskps where clang compiles for AVX (wide_rows.h;
+               # measured 1.06-1.10x on closest and any hits, Zen 3)
+               "CLANG_MOVMSK": int(ctx.compiler_is_clang)}
     if NODE_ORDERS[node_order] and not any_hit:
         defines["ORDER_GLOBAL"] = 1
     return defines

@@ -79,9 +79,9 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     ``exact_divide``: whether the device has correctly rounded float32
     division (it sets traverse.cl's ``SLAB_PAD``); ``compiler_is_clang``:
     whether the platform compiles with clang (PoCL: refit.cl's
-    ``CLANG_PREFETCH``, winding.cl's ``INLINE_SQRT``). ``None`` (the default)
-    lists both values: every device of that kind. :func:`variants_for` gives one
-    context's list.
+    ``CLANG_PREFETCH``, winding.cl's ``INLINE_SQRT``, traverse.cl's
+    ``CLANG_MOVMSK``). ``None`` (the default) lists both values: every device of
+    that kind. :func:`variants_for` gives one context's list.
     """
     ctxs = [_fake_ctx(is_cpu, d, c) for d in _choices(exact_divide)
             for c in _choices(compiler_is_clang)]

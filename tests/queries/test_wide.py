@@ -13,6 +13,7 @@ import pytest
 
 import lbvh
 from lbvh.layout import make_nodes
+from lbvh.queries import traverse as tr
 from lbvh.queries.wide import WIDTHS, read_records, wide_numpy
 from test_traverse import chain_tree, cyclic_tree, scene, tree
 
@@ -128,3 +129,27 @@ def test_a_cycle_is_refused_with_the_node_named():
 def test_bad_width_is_refused():
     with pytest.raises(ValueError, match=r"width: 3; expected one of \(4, 8\)"):
         _fresh("lbvh30").wide_records(width=3)
+
+
+@pytest.mark.parametrize("any_hit", [False, True], ids=["closest", "any"])
+def test_lane_mask_by_movmsk_answers_as_the_reduction(any_hit):
+    """lane_bits by clang's vmovmskps builtin (CLANG_MOVMSK, set where the compiler is
+    clang; taken where the target has AVX) and by the portable reduction give the same
+    hits bit for bit; where the device's compiler is not clang the define is 0."""
+    v, f = lbvh.data.teapot()
+    bvh = lbvh.build(v, f)
+    rng = np.random.default_rng(3)
+    o = (rng.uniform(-1, 1, (4000, 3)) * 6 + [0, 1.5, 0]).astype(np.float32)
+    d = (rng.uniform(-1, 1, (4000, 3)) * [3, 1, 3] + [0, 1.5, 0] - o).astype(np.float32)
+    rays = tr.check_rays(o, d)
+    got = {}
+    for movmsk in (0, 1):
+        out = tr.trace_buffers(bvh, tr.upload_rays(bvh.ctx, rays), any_hit=any_hit,
+                               defines={"CLANG_MOVMSK": movmsk})
+        got[movmsk] = [np.asarray(a).view(np.uint32) for a in tr.read_hits(bvh.ctx, out)]
+    for a, b in zip(got[0], got[1]):
+        assert np.array_equal(a, b)
+    assert (got[1][3].view(np.int32) >= 0).sum() > 1000   # rays that hit, and rays that miss
+    assert (got[1][3].view(np.int32) < 0).sum() > 100
+    assert tr.kernel_defines(bvh.ctx, any_hit, "watertight", False, 8)["CLANG_MOVMSK"] == \
+        int(bvh.ctx.compiler_is_clang)
