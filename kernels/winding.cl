@@ -44,13 +44,18 @@
  *                 37 or 16); 2 unless told.
  *   WIDE=1        walk the wide records (`nodes` is then the records, the root
  *                 their reference (root, root_y)); WIDTH=4 or 8 lanes.
- *   SCALED=1      every difference (a corner or a node's centre minus q) is
+ *   SCALED=1|2    every difference (a corner or a node's centre minus q) is
  *                 multiplied by `scale`, a power of two that brings the mesh to
  *                 about unit size, and the moments are the scaled mesh's
  *                 (winding_moments.py winding_scale): the triple products
  *                 (size^3) and second-order terms (size^4 times distance^3)
- *                 neither overflow nor underflow float32. SCALED=0 (meshes of
- *                 extent 2^-12 to 2^12) leaves them as they are.
+ *                 neither overflow nor underflow float32. 1 (a small mesh,
+ *                 scale > 1) subtracts, then scales; 2 (a large one, scale < 1)
+ *                 scales each side first, so that corners of opposite signs
+ *                 near the float32 limit do not overflow. A scaled difference is
+ *                 clamped to +-2^40, where a unit-size node's terms are 0 in
+ *                 float32 (its r^2 stays finite). SCALED=0 (meshes of extent
+ *                 2^-12 to 2^12) leaves the differences as they are.
  */
 #include "common.h"
 
@@ -76,10 +81,14 @@
 #ifndef SCALED
 #define SCALED 0
 #endif
-#if SCALED
-#define SCALE_DIFF(d) ((d) * scale)
+#define DIFF_LIMIT 1099511627776.0f   /* 2^40 */
+#define CLAMP_DIFF(d) ((d) > DIFF_LIMIT ? DIFF_LIMIT : ((d) < -DIFF_LIMIT ? -DIFF_LIMIT : (d)))
+#if SCALED == 1
+#define DIFF(a, b) CLAMP_DIFF(((a) - (b)) * scale)
+#elif SCALED == 2
+#define DIFF(a, b) CLAMP_DIFF((a) * scale - (b) * scale)
 #else
-#define SCALE_DIFF(d) (d)
+#define DIFF(a, b) ((a) - (b))
 #endif
 
 /* atan2(y, x) in float32 within 4e-7 of the exact angle (under 2 ulps of pi),
@@ -117,7 +126,7 @@ inline float atan2_poly(float y, float x) {
  * bench/README.md). */
 inline float dot3(float3 u, float3 v) { return u.x * v.x + u.y * v.y + u.z * v.z; }
 inline float solid_angle(float3 q, float3 p0, float3 p1, float3 p2, float scale) {
-    const float3 a = SCALE_DIFF(p0 - q), b = SCALE_DIFF(p1 - q), c = SCALE_DIFF(p2 - q);
+    const float3 a = DIFF(p0, q), b = DIFF(p1, q), c = DIFF(p2, q);
     const float4 l = sqrt4((float4)(dot3(a, a), dot3(b, b), dot3(c, c), 0.0f));
     const float la = l.x, lb = l.y, lc = l.z;
     const float num = a.x * (b.y * c.z - b.z * c.y) + a.y * (b.z * c.x - b.x * c.z) +
@@ -189,9 +198,8 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
         for (;;) {
             if (visits++ < num_nodes) {
                 __global const floatw *m = rows + ROWS * record;
-                const floatw rx = SCALE_DIFF(m[0] - (floatw)(q.x)),
-                             ry = SCALE_DIFF(m[1] - (floatw)(q.y)),
-                             rz = SCALE_DIFF(m[2] - (floatw)(q.z));
+                const floatw rx = DIFF(m[0], (floatw)(q.x)), ry = DIFF(m[1], (floatw)(q.y)),
+                             rz = DIFF(m[2], (floatw)(q.z));
                 const floatw r2 = rx * rx + ry * ry + rz * rz;
                 const intw far = r2 > (floatw)(beta2) * m[3];
                 /* the far lanes' expansions (Barill et al. 2018), as the binary walk's */
@@ -233,7 +241,7 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
     for (;;) {
         if (node >= 0 && visits++ < num_nodes) {
             __global const float *m = moments + ROWS * node;
-            const float3 r = SCALE_DIFF((float3)(m[0], m[1], m[2]) - q);
+            const float3 r = DIFF((float3)(m[0], m[1], m[2]), q);
             const float r2 = dot(r, r);
             const int a = as_int(nodes[2 * node].w), b = as_int(nodes[2 * node + 1].w);
             if (r2 > beta2 * m[3]) {

@@ -69,14 +69,45 @@ FLAG_OVERFLOW = 1
 _WORK_GROUP = 64
 
 
-def kernel_defines(ctx: dev.Context, scaled: bool = False) -> dict[str, int]:
+#: kernels/winding.cl's ``SCALED`` values: no scale, a small mesh scaled up, a large one
+#: scaled down.
+SCALED_MODES = (0, 1, 2)
+
+
+#: Points farther than this many times the mesh's extent from its box are walked with
+#: the differences clamped (``SCALED=1``, at scale 1 for a mesh that needs none): a
+#: unit-size mesh's far terms (distance^3 times size^4) overflowed to NaN from about
+#: 1e13 of its size away.
+FAR_POINTS = 2.0 ** 20
+
+
+def scaled_mode(scale: float, points: np.ndarray | None = None,
+                vertices: np.ndarray | None = None) -> int:
+    """kernels/winding.cl's ``SCALED`` for a mesh of this
+    :func:`~lbvh.queries.winding_moments.winding_scale`, and for these ``points``
+    (``float32 (N, 3)``) of that mesh's ``vertices``: 0 (as they are), 1 (scaled up, or
+    clamped only: some point lies farther than :data:`FAR_POINTS` extents from the
+    mesh's box) or 2 (scaled down)."""
+    if scale != 1.0:
+        return 1 if scale > 1.0 else 2
+    if points is None or vertices is None or not len(points) or not len(vertices):
+        return 0
+    v = np.asarray(vertices, np.float64)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    q = np.asarray(points, np.float64)
+    reach = max(float((lo - q.min(axis=0)).max()), float((q.max(axis=0) - hi).max()))
+    return 1 if reach > FAR_POINTS * max(float((hi - lo).max()), 2.0 ** -126) else 0
+
+
+def kernel_defines(ctx: dev.Context, scaled: int = 0) -> dict[str, int]:
     """kernels/winding.cl's choices: ``INLINE_SQRT`` where the compiler is clang's
     (kernels/common.h: its inline square root; 1.09x on Sponza's winding numbers,
     bench/README.md); ``ORDER``, that of the moments the trees keep
-    (:data:`DEFAULT_ORDER`); ``SCALED`` for a mesh whose
-    :func:`~lbvh.queries.winding_moments.winding_scale` is not 1."""
+    (:data:`DEFAULT_ORDER`); ``SCALED`` (:func:`scaled_mode`)."""
+    if scaled not in SCALED_MODES:
+        raise ValueError(f"scaled: {scaled!r}; expected one of {SCALED_MODES}")
     return {"INLINE_SQRT": int(ctx.compiler_is_clang), "ORDER": DEFAULT_ORDER,
-            "SCALED": int(bool(scaled))}
+            "SCALED": int(scaled)}
 
 
 def _check_beta(beta: Any) -> np.float32:
@@ -125,7 +156,7 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
     ctx, tree, mem = target.ctx, target.tree, target.ctx.memory
     (records, root, root_y), defines = walk_of(target)
     scale = winding_scale(target.mesh.vertices)
-    defines = {**defines, **kernel_defines(ctx, scale != 1.0)}
+    defines = {**defines, **kernel_defines(ctx, scaled_mode(scale, p, target.mesh.vertices))}
     moments = target.winding_moments()
     slot_faces = target.slot_faces()
     batch = int(min(batch_size, n))

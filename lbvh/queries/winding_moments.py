@@ -104,7 +104,9 @@ def winding_scale(vertices: np.ndarray) -> float:
     ``[2^-SCALE_FREE, 2^SCALE_FREE)`` (no scaling: ``SCALED=0``), else ``2^-e`` with
     the extent in ``[2^(e-1), 2^e)``, ``e`` within [-126, 126] (a normal float32).
     Without it, the float32 walk answered NaN for an icosphere of radius 1e6 or
-    1e-8 (tests/queries/test_winding.py)."""
+    1e-8 (tests/queries/test_winding.py). kernels/winding.cl scales a small mesh's
+    differences after subtracting and a large one's sides before (``SCALED`` 1 and 2,
+    :func:`lbvh.queries.winding.scaled_mode`)."""
     v = np.asarray(vertices, np.float64)
     extent = float((v.max(axis=0) - v.min(axis=0)).max()) if len(v) else 0.0
     if not extent > 0 or not np.isfinite(extent):

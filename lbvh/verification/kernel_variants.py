@@ -178,7 +178,7 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     # binary nodes and wide records of either width
     # (and for meshes of every size: scaled or not)
     for ctx, stack, ordered, scaled in itertools.product(ctxs, traverse.STACK_BUCKETS, (0, 1),
-                                                         (False, True)):
+                                                         winding.SCALED_MODES):
         add(winding.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered,
                                   **winding.kernel_defines(ctx, scaled)})
         for width in wide.WIDTHS:

@@ -16,7 +16,8 @@ from lbvh.queries.winding import expansion_numpy, winding_numbers_numpy
 from lbvh.queries import winding_moments as wm
 from lbvh.queries.winding_moments import (ROWS_ORDER1, ROWS_ORDER2, make_moments, node_moments,
                                           read_lanes, wide_moments, _triangle_terms)
-from lbvh.verification import meshes
+from lbvh.queries import winding
+from lbvh.verification import hard_cases, meshes
 from lbvh.verification.error_bound import INSIDE_TOLERANCE, WINDING_BOUND
 
 
@@ -191,7 +192,6 @@ def test_device_moments_are_the_twins_bit_for_bit(case):
     """kernels/winding_moments.cl runs the twins' float64 operations in their order: the
     float32 rows are the same bits, per node and in the rows of wide records of either
     width, on every kind of tree (Karras leaves, leaf lists, host-built trees)."""
-    from lbvh.verification import hard_cases
     kw = {"collapsed": {"collapse": True}, "sah": {"builder": "sah"},
           "treelets": {"treelet_rounds": 1}}.get(case, {})
     if case in ("far_from_origin", "1_triangle", "2_triangles"):
@@ -243,6 +243,43 @@ def test_meshes_of_any_size(size):
         w = tree.winding_numbers(p)
         assert np.isfinite(w).all() and np.abs(w - exact).max() <= WINDING_BOUND
         assert np.array_equal(tree.contains(p), exact > 0.5)
+
+
+HARD_CASES = [name for name in hard_cases.CASES if name != "over_2_24_triangles"]
+
+
+@pytest.mark.parametrize("name", HARD_CASES)
+def test_hard_cases_within_the_bound(name):
+    """Every hard case of the ray queries (lbvh/verification/hard_cases.py: coordinates
+    near 1e38 and the denormals, a mesh 1e7 from the origin, slivers, zero-area and
+    identical triangles, deep chains...): the winding numbers of points in the box grown
+    by a fifth within WINDING_BOUND of the exact float64 sum, none NaN, except at
+    points within 1e-3 of the extent of the surface (on a flat or a doubled sheet many
+    points lie on it, where w is anything from 0 to 1 either way)."""
+    case = hard_cases.CASES[name]()
+    v, f = case.vertices, case.faces
+    lo, hi = v.min(0).astype(np.float64), v.max(0).astype(np.float64)
+    rng = np.random.default_rng(1)
+    p = np.clip(lo - 0.2 * (hi - lo) + rng.uniform(0, 1.4, (300, 3)) * (hi - lo),
+                -3e38, 3e38).astype(np.float32)
+    w = lbvh.build(v, f).winding_numbers(p)
+    assert not np.isnan(w).any()
+    away = closest_points_numpy(v, f, p)[0] > 1e-3 * float((hi - lo).max())
+    assert np.abs(w - winding_numbers_numpy(v, f, p))[away].max(initial=0) <= WINDING_BOUND
+
+
+def test_points_far_from_the_mesh():
+    """Points 1e3 to 1e30 sizes away from a unit icosphere: winding numbers about 0,
+    not NaN (its far terms, distance^3 times size^4, overflowed from about 1e13 away:
+    such points are walked with the differences clamped, scaled_mode)."""
+    ico = trimesh.creation.icosphere(subdivisions=2)
+    v, f = np.float32(ico.vertices), np.uint32(ico.faces)
+    bvh = lbvh.build(v, f)
+    for far in (1e3, 1e8, 1e13, 1e18, 1e30):
+        p = np.float32([[far, 0, 0], [0, -far, far], [0.1, 0.2, 0.3]])
+        w = bvh.winding_numbers(p)
+        assert np.abs(w[:2]).max() < 1e-6 and abs(w[2] - 1) <= WINDING_BOUND
+    assert winding.scaled_mode(1.0, p[:2], v) == 1 and winding.scaled_mode(1.0, p[2:], v) == 0
 
 
 def test_moments_without_device_doubles_are_the_twins(monkeypatch):
