@@ -11,6 +11,7 @@ facade over a mesh, a tree and the query caches, and it alone owns them.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import pyopencl as cl
@@ -36,6 +37,15 @@ class Mesh:
     @property
     def num_prims(self) -> int:
         return len(self.faces)
+
+    @cached_property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``float64 (3,)`` lower and upper corners of the vertices' box (on the host,
+        once: the vertices never change, a refit makes another mesh)."""
+        if not len(self.vertices):
+            return np.zeros(3), np.zeros(3)
+        return (self.vertices.min(axis=0).astype(np.float64),
+                self.vertices.max(axis=0).astype(np.float64))
 
     @classmethod
     def upload(cls, ctx: Context, vertices: np.ndarray, faces: np.ndarray) -> "Mesh":

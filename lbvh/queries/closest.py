@@ -66,18 +66,27 @@ class Closest:
         return len(self.distance)
 
 
-def check_points(points: Any) -> np.ndarray:
-    """``float32 (N, 3)`` C-contiguous query points, or a ``ValueError`` naming the first bad one."""
+def check_points_range(points: Any) -> tuple[np.ndarray, float, float]:
+    """:func:`check_points`, with the least and the largest coordinate of any point
+    (over every axis; 0, 0 for no point), which its check computes anyway."""
     given = real_array("points", points)
     if given.ndim != 2 or given.shape[1] != 3:
         raise ValueError(f"points: shape {given.shape}, expected (N, 3)")
     with np.errstate(over="ignore", invalid="ignore"):
         p = np.ascontiguousarray(given, dtype=np.float32)
-    if p.size and not (np.isfinite(p.min()) and np.isfinite(p.max())):
+    if not p.size:
+        return p, 0.0, 0.0
+    least, largest = p.min(), p.max()
+    if not (np.isfinite(least) and np.isfinite(largest)):
         i = int(np.flatnonzero(~np.isfinite(p).all(axis=1))[0])
         raise ValueError(f"points: point {i} has a NaN, infinite or beyond-float32 component "
                          f"{given[i].tolist()}")
-    return p
+    return p, float(least), float(largest)
+
+
+def check_points(points: Any) -> np.ndarray:
+    """``float32 (N, 3)`` C-contiguous query points, or a ``ValueError`` naming the first bad one."""
+    return check_points_range(points)[0]
 
 
 def _max_distance(max_distance: Any) -> np.float32:

@@ -49,10 +49,10 @@ import numpy as np
 import pyopencl as cl
 
 from .. import device as dev
-from .closest import check_points, closest_points, walk_of
+from .closest import check_points, check_points_range, closest_points, walk_of
 from .ray_order import MIN_POINTS, gather_points, point_order
 from .target import QueryTarget
-from .winding_moments import DEFAULT_ORDER, ROWS_ORDER1, ROWS_ORDER2, winding_scale
+from .winding_moments import DEFAULT_ORDER, ROWS_ORDER1, ROWS_ORDER2, scale_of_box
 
 KERNEL_FILE = "winding.cl"
 
@@ -81,21 +81,22 @@ SCALED_MODES = (0, 1, 2)
 FAR_POINTS = 2.0 ** 20
 
 
-def scaled_mode(scale: float, points: np.ndarray | None = None,
-                vertices: np.ndarray | None = None) -> int:
+def scaled_mode(scale: float, points_range: tuple[float, float] | None = None,
+                bounds: tuple[np.ndarray, np.ndarray] | None = None) -> int:
     """kernels/winding.cl's ``SCALED`` for a mesh of this
-    :func:`~lbvh.queries.winding_moments.winding_scale`, and for these ``points``
-    (``float32 (N, 3)``) of that mesh's ``vertices``: 0 (as they are), 1 (scaled up, or
-    clamped only: some point lies farther than :data:`FAR_POINTS` extents from the
-    mesh's box) or 2 (scaled down)."""
+    :func:`~lbvh.queries.winding_moments.winding_scale` and box ``bounds`` (lower,
+    upper), and for points whose coordinates all lie in ``points_range`` (least,
+    largest, over every axis: :func:`~lbvh.queries.closest.check_points_range`): 0 (as
+    they are), 1 (scaled up, or clamped only: a point may lie farther than
+    :data:`FAR_POINTS` extents from the box, judged from that range, which errs on the
+    side of the clamp) or 2 (scaled down)."""
     if scale != 1.0:
         return 1 if scale > 1.0 else 2
-    if points is None or vertices is None or not len(points) or not len(vertices):
+    if points_range is None or bounds is None:
         return 0
-    v = np.asarray(vertices, np.float64)
-    lo, hi = v.min(axis=0), v.max(axis=0)
-    q = np.asarray(points, np.float64)
-    reach = max(float((lo - q.min(axis=0)).max()), float((q.max(axis=0) - hi).max()))
+    lo, hi = (np.asarray(b, np.float64) for b in bounds)
+    least, largest = points_range
+    reach = max(float((lo - least).max()), float((largest - hi).max()))
     return 1 if reach > FAR_POINTS * max(float((hi - lo).max()), 2.0 ** -126) else 0
 
 
@@ -143,7 +144,7 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
         raise ValueError("winding_numbers: this tree has spatial splits (builder='sbvh'), whose "
                          "nodes would count a split triangle more than once; build another tree "
                          "for inside tests and signed distance")
-    p = check_points(points)
+    p, least, largest = check_points_range(points)
     beta2 = _check_beta(beta)
     if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
             or batch_size < 1:
@@ -155,8 +156,9 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
         return out
     ctx, tree, mem = target.ctx, target.tree, target.ctx.memory
     (records, root, root_y), defines = walk_of(target)
-    scale = winding_scale(target.mesh.vertices)
-    defines = {**defines, **kernel_defines(ctx, scaled_mode(scale, p, target.mesh.vertices))}
+    bounds = target.mesh.bounds
+    scale = scale_of_box(*bounds)
+    defines = {**defines, **kernel_defines(ctx, scaled_mode(scale, (least, largest), bounds))}
     moments = target.winding_moments()
     slot_faces = target.slot_faces()
     batch = int(min(batch_size, n))

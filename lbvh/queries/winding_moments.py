@@ -39,7 +39,8 @@ from .wide import Wide
 KERNEL_FILE = "winding_moments.cl"
 
 __all__ = ["DEFAULT_ORDER", "ROWS_ORDER1", "ROWS_ORDER2", "node_moments", "wide_moments",
-           "read_lanes", "make_moments", "device_can_make", "kernel_defines", "winding_scale"]
+           "read_lanes", "make_moments", "device_can_make", "kernel_defines", "winding_scale",
+           "scale_of_box"]
 
 #: Floats per node of the first-order moments (:func:`node_moments` with ``order=1``).
 ROWS_ORDER1 = 16
@@ -87,8 +88,10 @@ def _triangle_terms(vertices: np.ndarray, faces: np.ndarray, order: int = 1) -> 
 
 def _shift(vertices: np.ndarray) -> np.ndarray:
     """The centre of the mesh's box in float64: what the sums are taken about."""
-    v = np.asarray(vertices, np.float64)
-    return 0.5 * (v.min(axis=0) + v.max(axis=0)) if len(v) else np.zeros(3)
+    v = np.asarray(vertices)
+    if not len(v):
+        return np.zeros(3)
+    return 0.5 * (v.min(axis=0).astype(np.float64) + v.max(axis=0).astype(np.float64))
 
 
 #: A mesh whose largest extent lies in [2^-SCALE_FREE, 2^SCALE_FREE) is walked as it is
@@ -107,8 +110,15 @@ def winding_scale(vertices: np.ndarray) -> float:
     1e-8 (tests/queries/test_winding.py). kernels/winding.cl scales a small mesh's
     differences after subtracting and a large one's sides before (``SCALED`` 1 and 2,
     :func:`lbvh.queries.winding.scaled_mode`)."""
-    v = np.asarray(vertices, np.float64)
-    extent = float((v.max(axis=0) - v.min(axis=0)).max()) if len(v) else 0.0
+    v = np.asarray(vertices)
+    if not len(v):
+        return 1.0
+    return scale_of_box(v.min(axis=0), v.max(axis=0))
+
+
+def scale_of_box(lower: np.ndarray, upper: np.ndarray) -> float:
+    """:func:`winding_scale` of a mesh whose vertices' box is ``lower, upper``."""
+    extent = float((np.asarray(upper, np.float64) - np.asarray(lower, np.float64)).max())
     if not extent > 0 or not np.isfinite(extent):
         return 1.0
     e = int(np.frexp(extent)[1])
@@ -272,8 +282,8 @@ def make_moments(ctx: dev.Context, tree: Tree, mesh: Mesh, wide: Wide | None,
         if into_records:
             moments = wide_moments(moments, read_lanes(ctx, wide))
         return mem.upload(moments)
-    sx, sy, sz = (np.float64(s) for s in _shift(mesh.vertices))
-    scale = np.float64(winding_scale(mesh.vertices))
+    sx, sy, sz = (np.float64(s) for s in 0.5 * (mesh.bounds[0] + mesh.bounds[1]))
+    scale = np.float64(scale_of_box(*mesh.bounds))
     width = wide.width if into_records else None
     defines = kernel_defines(order, width)
     out = mem.alloc(4 * rows * (wide.count * wide.width if into_records else tree.num_nodes))

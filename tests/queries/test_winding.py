@@ -279,7 +279,12 @@ def test_points_far_from_the_mesh():
         p = np.float32([[far, 0, 0], [0, -far, far], [0.1, 0.2, 0.3]])
         w = bvh.winding_numbers(p)
         assert np.abs(w[:2]).max() < 1e-6 and abs(w[2] - 1) <= WINDING_BOUND
-    assert winding.scaled_mode(1.0, p[:2], v) == 1 and winding.scaled_mode(1.0, p[2:], v) == 0
+    box = bvh.mesh.bounds
+    assert np.array_equal(box[0], v.min(0)) and np.array_equal(box[1], v.max(0))
+    assert winding.scaled_mode(1.0, (float(p[:2].min()), float(p[:2].max())), box) == 1
+    assert winding.scaled_mode(1.0, (float(p[2:].min()), float(p[2:].max())), box) == 0
+    assert winding.scaled_mode(2.0 ** -20, (0.0, 1.0), box) == 2
+    assert winding.scaled_mode(2.0 ** 20, (0.0, 1.0), box) == 1
 
 
 def test_moments_without_device_doubles_are_the_twins(monkeypatch):
