@@ -52,11 +52,12 @@ from .. import device as dev
 from .closest import check_points, check_points_range, closest_points, walk_of
 from .ray_order import MIN_POINTS, gather_points, point_order
 from .target import QueryTarget
-from .winding_moments import DEFAULT_ORDER, ROWS_ORDER1, ROWS_ORDER2, scale_of_box
+from .winding_moments import DEFAULT_ORDER, ROWS_ORDER2, scale_of_box
 
 KERNEL_FILE = "winding.cl"
 
-__all__ = ["DEFAULT_BETA", "DEFAULT_ORDER", "expansion_numpy", "winding_numbers", "contains", "signed_distance", "winding_numbers_numpy"]
+__all__ = ["DEFAULT_BETA", "DEFAULT_ORDER", "expansion_numpy", "winding_numbers", "contains",
+           "signed_distance", "winding_numbers_numpy"]
 
 #: The accuracy parameter of Barill et al. 2018: a node is expanded only where the point
 #: lies farther than beta times its radius (with the second-order expansion; the

@@ -91,7 +91,12 @@ def _shift(vertices: np.ndarray) -> np.ndarray:
     v = np.asarray(vertices)
     if not len(v):
         return np.zeros(3)
-    return 0.5 * (v.min(axis=0).astype(np.float64) + v.max(axis=0).astype(np.float64))
+    return _centre(v.min(axis=0), v.max(axis=0))
+
+
+def _centre(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    """The centre of a box, in float64 (the float32 corners convert exactly)."""
+    return 0.5 * (np.asarray(lower, np.float64) + np.asarray(upper, np.float64))
 
 
 #: A mesh whose largest extent lies in [2^-SCALE_FREE, 2^SCALE_FREE) is walked as it is
@@ -282,7 +287,7 @@ def make_moments(ctx: dev.Context, tree: Tree, mesh: Mesh, wide: Wide | None,
         if into_records:
             moments = wide_moments(moments, read_lanes(ctx, wide))
         return mem.upload(moments)
-    sx, sy, sz = (np.float64(s) for s in 0.5 * (mesh.bounds[0] + mesh.bounds[1]))
+    sx, sy, sz = (np.float64(s) for s in _centre(*mesh.bounds))
     scale = np.float64(scale_of_box(*mesh.bounds))
     width = wide.width if into_records else None
     defines = kernel_defines(order, width)
