@@ -45,6 +45,7 @@ Wide records
 """
 from __future__ import annotations
 
+import functools
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -322,8 +323,14 @@ def slab_pad(ctx: dev.Context) -> str:
     reciprocal and the product. Where the reciprocal is not correctly rounded
     (OpenCL allows 2.5 ulp) it counts as five more: ``1 + 2 gamma(7)``.
     """
-    exact_div = bool(ctx.device.single_fp_config
-                     & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT)
+    return _slab_pad(bool(ctx.device.single_fp_config
+                          & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT))
+
+
+@functools.lru_cache(maxsize=None)
+def _slab_pad(exact_div: bool) -> str:
+    """:func:`slab_pad` given whether the device's division is correctly rounded
+    (computed once: every query's defines ask for it)."""
     n = 3 if exact_div else 7
     gamma = n * _UNIT_ROUNDOFF / (1 - n * _UNIT_ROUNDOFF)
     pad = np.float32(1 + 2 * gamma)
@@ -497,9 +504,9 @@ def _trace_rays(target: QueryTarget, rays: Rays, any_hit: bool, triangle_test: s
     if counters:
         bufs["count"] = alloc(8 * batch)
     try:
-        if not per_ray:
-            cl.enqueue_copy(queue, bufs["lo"], lo)
-            cl.enqueue_copy(queue, bufs["hi"], hi)
+        if not per_ray:   # lo, hi live until the last batch's finish: not blocking
+            cl.enqueue_copy(queue, bufs["lo"], lo, is_blocking=False)
+            cl.enqueue_copy(queue, bufs["hi"], hi, is_blocking=False)
         for start in range(0, n, batch):
             stop = min(n, start + batch)
             m = stop - start
@@ -516,9 +523,14 @@ def _trace_rays(target: QueryTarget, rays: Rays, any_hit: bool, triangle_test: s
                                    counters=counters, stack_size=stack_size, hits=bufs["hits"],
                                    flags=bufs["flags"], counter_buf=bufs.get("count"),
                                    wait_for=ups, order=order, node_order=node_order)
-            for k in range(4):
-                cl.enqueue_copy(queue, planes[k, start:stop], bufs["hits"], src_offset=4 * k * m,
-                                wait_for=[result.event], is_blocking=False)
+            if m == n:   # one batch: the four planes are the buffer as it is, one copy
+                cl.enqueue_copy(queue, planes, bufs["hits"], wait_for=[result.event],
+                                is_blocking=False)
+            else:
+                for k in range(4):
+                    cl.enqueue_copy(queue, planes[k, start:stop], bufs["hits"],
+                                    src_offset=4 * k * m, wait_for=[result.event],
+                                    is_blocking=False)
             cl.enqueue_copy(queue, flag[start:stop], bufs["flags"], wait_for=[result.event],
                             is_blocking=False)
             if counters:
