@@ -163,6 +163,13 @@ GOAL_CANDIDATES = (OURS, f"{OURS}+collapse", SMALL_TREELETS, TREELETS, "sah")
 #: Timed builds per device tree (after an untimed one: kernel compilation).
 BUILD_REPEATS = 3
 
+#: Batch sizes of the small-batch table (closest hit, the default tree through the API
+#: against each peer): the price of one call, host work included, where a batch is too
+#: small for the traversal's throughput to decide.
+SMALL_BATCHES = (1, 1_000, 10_000)
+#: Calls of every tracer per batch size (interleaved: one call of each per round).
+SMALL_CALLS = 25
+
 
 # -- rays ----------------------------------------------------------------------------
 
@@ -713,6 +720,8 @@ def bench_scene(scene: common.Scene, ctx: dev.Context, peers: dict[str, Any], po
                               lambda c, q=rays.query: sum(c.wall.get(q, [])),
                               lambda c, r=rays: c.run(r), progress, rays.query)
     count_nodes_and_triangles(contestants, ray_sets, progress)
+    progress.note("small batches")
+    small = small_batches(contestants, origins, directions, args.small_calls)
     rows, comparisons = [], {}
     for rays in ray_sets:
         progress.note(f"judging {rays.query}")
@@ -733,8 +742,42 @@ def bench_scene(scene: common.Scene, ctx: dev.Context, peers: dict[str, Any], po
                "build_seconds": {c.name: c.build_seconds for c in contestants if c.timing == "wall"},
                "build_samples": {c.name: c.build_samples for c in contestants
                                  if c.timing == "wall" and c.build_samples},
-               "comparisons": comparisons, "notes": notes}
+               "comparisons": comparisons, "small_batches": small, "notes": notes}
     return summary, rows
+
+
+def small_batches(contestants: list[Contestant], origins: np.ndarray, directions: np.ndarray,
+                  calls: int) -> list[dict]:
+    """Per size of :data:`SMALL_BATCHES`: the median wall seconds of one closest-hit
+    call by our default tree through the API and by each peer, on the same rays (that
+    many of the camera's, spread evenly over the image), ``calls`` rounds of one call
+    of every tracer after an untimed one; and ours over each peer, the median of the
+    per-round ratios of their times (above 1: ours is faster)."""
+    tracers = [c for c in contestants
+               if c.name == OURS or c.variant.family in ("embree", "open3d", "warp")]
+    if not calls or not any(c.name == OURS for c in tracers):
+        return []
+    out = []
+    for n in SMALL_BATCHES:
+        if n > len(origins):
+            continue
+        pick = (np.arange(n, dtype=np.int64) * len(origins)) // n
+        rays = RaySet("closest", np.ascontiguousarray(origins[pick]),
+                      np.ascontiguousarray(directions[pick]), float("inf"))
+        samples: dict[str, list[float]] = {c.name: [] for c in tracers}
+        for c in tracers:
+            c.tracer.trace(rays)
+        for _ in range(calls):
+            for c in tracers:
+                t0 = time.perf_counter()
+                c.tracer.trace(rays)
+                samples[c.name].append(time.perf_counter() - t0)
+        ours = np.array(samples[OURS])
+        out.append({"rays": n, "calls": calls, "samples": samples,
+                    "seconds": {k: float(statistics.median(v)) for k, v in samples.items()},
+                    "ours_over": {k: float(np.median(np.array(v) / ours))
+                                  for k, v in samples.items() if k != OURS}})
+    return out
 
 
 # -- summary, targets, Markdown -------------------------------------------------------
@@ -988,6 +1031,7 @@ def markdown(report: dict) -> str:
             f"| {fmt_ratio(r['vs'].get('embree-2t'))} "
             f"| {fmt_mrays(p.get(OPEN3D))} | {fmt_ratio(r['vs'].get(OPEN3D))} "
             f"| {fmt_mrays(p.get('warp'))} | {fmt_ratio(r['vs'].get('warp'))} |")
+    lines += small_batches_markdown(report["scenes"])
     lines += ["", "## Targets (issue 3, closest hit through the API: the default `lbvh.build` "
               f"tree, `{TREELETS}` and, with `--sah`, the serial SAH reference tree)", ""]
     for t in report["targets"]:
@@ -1024,6 +1068,28 @@ def markdown(report: dict) -> str:
             f"| {judged} | {fmt_or_dash(r['overflow_count'], 'd')} |")
     lines += ["", COLUMN_NOTES]
     return "\n".join(lines) + "\n"
+
+
+def small_batches_markdown(scenes: list[dict]) -> list[str]:
+    """The small-batch table: microseconds per call, and ours over each peer."""
+    entries = [(sc["name"], e) for sc in scenes for e in sc.get("small_batches", [])]
+    if not entries:
+        return []
+    peers = sorted({k for _, e in entries for k in e["ours_over"]})
+    calls = entries[0][1]["calls"]
+    lines = ["", f"## Small batches (closest hit, the `{OURS}` tree through the API: one call's "
+             f"wall time in microseconds, host work included; medians of {calls} interleaved "
+             "calls; ours / peer: the median of the per-round ratios, above 1 ours is faster)",
+             "", f"| scene | rays | {OURS} us | " + " | ".join(f"{p} us" for p in peers) + " | "
+             + " | ".join(f"ours / {p}" for p in peers) + " |",
+             "|---|---:|---:|" + "---:|" * (2 * len(peers))]
+    for name, e in entries:
+        sec = e["seconds"]
+        lines.append(f"| {name} | {e['rays']:,} | {sec[OURS] * 1e6:.0f} | "
+                     + " | ".join(fmt_or_dash(None if p not in sec else sec[p] * 1e6, ".0f")
+                                  for p in peers) + " | "
+                     + " | ".join(fmt_or_dash(e["ours_over"].get(p), ".2f") for p in peers) + " |")
+    return lines
 
 
 def goal_markdown(entries: list[dict], verdict: dict[str, dict]) -> list[str]:
@@ -1113,6 +1179,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--sah", action="store_true",
                    help=f"also the serial SAH tree, on scenes up to {SAH_MAX_TRIANGLES:,} triangles")
     p.add_argument("--views", type=Path, default=None, help="also write what each camera sees here")
+    p.add_argument("--small-calls", type=int, default=None,
+                   help=f"calls per tracer and batch size of the small-batch table (default "
+                        f"{SMALL_CALLS}, 3 with --quick; 0 leaves the table out)")
     common.add_run_options(p)
     p._option_string_actions["--no-peers"].help = "skip Embree, Open3D and warp"
     args = p.parse_args(argv)
@@ -1121,6 +1190,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
             p.error(f"--{name.replace('_', '-')}: at least 1")
     if args.judge < 0:
         p.error("--judge: at least 0")
+    if args.small_calls is None:
+        args.small_calls = 3 if args.quick else SMALL_CALLS
+    if args.small_calls < 0:
+        p.error("--small-calls: at least 0")
     common.resolve_scenes(p, args, *scene_options)
     return args
 
@@ -1178,6 +1251,7 @@ def main(argv: list[str] | None = None) -> dict:
                      "quick": args.quick, "reference": REFERENCE,
                      "fallback_reference": FALLBACK_REFERENCE, "embree_chunks": EMBREE_CHUNKS,
                      "warp_constructor": WARP_CONSTRUCTOR, "build_repeats": BUILD_REPEATS,
+                     "small_batches": list(SMALL_BATCHES), "small_calls": args.small_calls,
                      "goal": {"peers": list(GOAL_PEERS), "default_at_least": GOAL_DEFAULT,
                               "best_at_least": GOAL_BEST, "build_factor": GOAL_BUILD_FACTOR,
                               "candidates": list(GOAL_CANDIDATES), "judged_query": "closest"},

@@ -287,7 +287,8 @@ def test_quick_markdown_has_the_tables_and_targets(quick):
     assert "## The price of watertightness" in text
     assert text.count(f"| {report['scenes'][0]['name']} | ") == (
         len(report["rows"]) + len(report["closest_ratios"]) + len(report["watertight_price"])
-        + len(report["goal"]))
+        + len(report["goal"]) + len(report["scenes"][0]["small_batches"]))
+    assert "## Small batches" in text
     verdict = [line for line in text.splitlines() if line.startswith("**Verdict, closest hit: ")]
     assert len(verdict) == 1 and report["goal_verdict"]["closest"]["status"] + "**" in verdict[0]
     targets = text.split("## Targets", 1)[1].split("\n## ", 1)[0]
@@ -295,6 +296,35 @@ def test_quick_markdown_has_the_tables_and_targets(quick):
     header = next(line for line in text.splitlines() if line.startswith("| scene | query | tracer |"))
     for column in ("nodes/ray", "tris/ray", "/ open3d"):
         assert f"| {column} |" in header
+
+
+def test_quick_small_batches_time_every_tracer_on_the_same_calls(quick):
+    """The small-batch table: every size that the quick run's rays hold, our default
+    tree and every peer timed, ours / peer the median of the per-round time ratios."""
+    _, report = quick
+    scene = report["scenes"][0]
+    n_rays = scene["rays"]["closest"]
+    small = scene["small_batches"]
+    assert [e["rays"] for e in small] == [n for n in bench.SMALL_BATCHES if n <= n_rays]
+    peers = {n for n in _expected_tracers()
+             if n.startswith(("embree", "warp")) or n == bench.OPEN3D}
+    for e in small:
+        assert e["calls"] == report["settings"]["small_calls"] == 3
+        assert set(e["seconds"]) == {bench.OURS} | peers
+        assert all(_finite_positive(v) for v in e["seconds"].values())
+        assert set(e["ours_over"]) == peers
+        assert all(len(v) == 3 for v in e["samples"].values())
+        for name, v in e["samples"].items():
+            assert e["seconds"][name] == statistics.median(v)
+        ours = np.array(e["samples"][bench.OURS])
+        for peer, ratio in e["ours_over"].items():
+            assert ratio == float(np.median(np.array(e["samples"][peer]) / ours))
+
+
+def test_small_batches_off(tmp_path):
+    report = bench.main(["--quick", "--no-peers", "--small-calls", "0", "--out", str(tmp_path)])
+    assert report["scenes"][0]["small_batches"] == []
+    assert "## Small batches" not in (tmp_path / "bench_traverse.md").read_text()
 
 
 def test_without_peers_the_reference_is_ours_and_targets_are_not_measured(tmp_path):
