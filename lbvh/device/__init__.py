@@ -19,12 +19,12 @@ from .context import (CONTEXT_CHECKS, ENV_DEVICE, Context, all_devices, describe
 from .errors import DeviceError
 from .launch import Launch, kernel_arg, run
 from .memory import (ENV_POISON, DeviceBuffer, DeviceMemory, MemoryTracker, Scope, empty,
-                     from_device, pooled_or_empty, read_later, to_device)
+                     from_device, pooled_or_empty, read_host_views, read_later, to_device)
 from .programs import (ENV_BUILD_LOG, check_compiler_cache, kernel_source,
                        kernels_dir, pocl_cache_dir)
 
 __all__ = ["CONTEXT_CHECKS", "ENV_DEVICE", "Context", "all_devices", "describe", "event_seconds", "find_device",
            "get_context", "queued_together", "serialised", "DeviceError", "Launch", "kernel_arg",
            "run", "ENV_POISON", "DeviceBuffer", "DeviceMemory", "MemoryTracker", "Scope", "empty",
-           "from_device", "pooled_or_empty", "read_later", "to_device", "ENV_BUILD_LOG",
+           "from_device", "pooled_or_empty", "read_host_views", "read_later", "to_device", "ENV_BUILD_LOG",
            "check_compiler_cache", "kernel_source", "kernels_dir", "pocl_cache_dir"]

@@ -162,6 +162,26 @@ class DeviceMemory:
             self._hand_out(buf, buf.nbytes, scope)
             return buf
 
+    def host_view(self, array: np.ndarray, *, output: bool = False) -> cl.Buffer:
+        """A buffer on the C-contiguous, non-empty numpy ``array``'s own memory
+        (``USE_HOST_PTR``): on a device that shares the host's memory (a CPU,
+        ``ctx.is_cpu``) the kernels read, or with ``output`` write, the array itself,
+        with no copy either way. Written results are the array's once
+        :func:`read_host_views` has returned. The caller releases the buffer; it
+        holds no device memory of its own and is not counted in :attr:`in_use`.
+        With ``LBVH_POISON_BYTE`` set, an ``output`` array is filled with it first,
+        as :meth:`alloc` fills its buffers (tests of unwritten results)."""
+        if not array.flags.c_contiguous or array.nbytes == 0:
+            raise ValueError("host_view: a C-contiguous, non-empty array")
+        if output and _POISON is not None:
+            array.view(np.uint8).fill(int(_POISON, 0))
+        flags = cl.mem_flags.WRITE_ONLY if output else cl.mem_flags.READ_ONLY
+        try:
+            return cl.Buffer(self._ctx, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=array)
+        except cl.Error as exc:
+            raise DeviceError(f"lbvh: a buffer on {array.nbytes:,} bytes of host memory on "
+                              f"{self._name} failed: {exc}") from exc
+
     def free(self, *bufs: cl.Buffer | None, to_pool: bool = False) -> None:
         """Give buffers back: scratch ones (and all with ``to_pool``: a caller about
         to allocate the same sizes again keeps their pages mapped) to the pool,
@@ -364,3 +384,16 @@ class MemoryTracker(Scope):
 
     def __init__(self, ctx: "Context") -> None:
         super().__init__(ctx.memory)
+
+
+def read_host_views(queue: cl.CommandQueue, views: Sequence[tuple[cl.Buffer, np.ndarray]],
+                    wait_for: Sequence[cl.Event] | None = None) -> None:
+    """Make what kernels wrote to ``(buffer, array)`` pairs of
+    :meth:`DeviceMemory.host_view` the arrays' contents: each buffer is mapped for
+    reading (blocking) and unmapped. OpenCL guarantees a ``USE_HOST_PTR`` buffer's
+    host memory holds the latest bits once its map completes; on a device that
+    shares the host's memory the map copies nothing."""
+    for buf, array in views:
+        mapped, _ = cl.enqueue_map_buffer(queue, buf, cl.map_flags.READ, 0, array.shape,
+                                          array.dtype, wait_for=wait_for, is_blocking=True)
+        mapped.base.release()

@@ -47,10 +47,22 @@ def test_queries_are_counted_and_give_everything_back(ctx):
     gc.collect()
     ctx.memory.reset_peak()
     held = ctx.memory.in_use
-    bvh.intersect(o, d)
-    # the batch's rays (2 x 12 B), hits (16 B) and flags (4 B) per ray were on the device
-    assert ctx.memory.peak - held >= 44 * len(o)
+    bvh.intersect(o, d, batch_size=5000)
+    # in batches, each batch's rays (2 x 12 B), hits (16 B) and flags (4 B) per ray were
+    # on the device
+    assert ctx.memory.peak - held >= 44 * 5000
     assert ctx.memory.in_use == held        # and were given back
+    ctx.memory.reset_peak()
+    one = bvh.intersect(o, d)                # one batch
+    if ctx.is_cpu:
+        # read and written in place in the host's arrays: no device memory at all
+        assert ctx.memory.peak == held
+    else:
+        assert ctx.memory.peak - held >= 44 * len(o)
+    assert ctx.memory.in_use == held
+    batched = bvh.intersect(o, d, batch_size=5000)
+    np.testing.assert_array_equal(one.t, batched.t)
+    np.testing.assert_array_equal(one.prim, batched.prim)
 
 
 def test_a_buffer_dropped_without_free_is_counted_out(ctx):

@@ -801,3 +801,33 @@ def test_kernel_equals_its_twin_on_rays_with_tiny_direction_components(ctx):
     case = make_case("tiny components", v, f, "test", o, d)
     judge = check.Judge(case, check.reference(case))
     assert not check.compare_closest(judge, got.prim, got.t, got.overflow).wrong.any()
+
+
+@pytest.mark.parametrize("per_ray_interval", [False, True])
+def test_one_batch_in_host_memory_answers_as_batches_do(ctx, per_ray_interval):
+    """On a CPU one batch is traced in the caller's arrays themselves (no copy either
+    way); in several batches through device buffers. Same answers, bit for bit, for
+    closest and any hits; the inputs, read-only ones included, are left as they were."""
+    v, f = random_soup(2000, seed=41)
+    bvh = lbvh.build(v, f)
+    rng = np.random.default_rng(42)
+    n = 3001
+    o = rng.random((n, 3), dtype=np.float32)
+    d = rng.normal(size=(n, 3)).astype(np.float32)
+    tmin = rng.uniform(0, 0.2, n).astype(np.float32) if per_ray_interval else 0.0
+    tmax = rng.uniform(0.3, 2.0, n).astype(np.float32) if per_ray_interval else np.inf
+    o_before, d_before = o.copy(), d.copy()
+    o.flags.writeable = False
+    whole = bvh.intersect(o, d, tmin, tmax)
+    parts = bvh.intersect(o, d, tmin, tmax, batch_size=1000)
+    for name in ("t", "u", "v", "prim", "overflow"):
+        np.testing.assert_array_equal(getattr(whole, name), getattr(parts, name), err_msg=name)
+    assert whole.hit.any() and not whole.hit.all()
+    np.testing.assert_array_equal(bvh.occluded(o, d, tmin, tmax),
+                                  bvh.occluded(o, d, tmin, tmax, batch_size=1000))
+    np.testing.assert_array_equal(o, o_before)
+    np.testing.assert_array_equal(d, d_before)
+    # the answers are the caller's own arrays, not views of memory the library reuses
+    again = bvh.intersect(o[::-1].copy(), d[::-1].copy(), tmin, tmax)
+    np.testing.assert_array_equal(whole.t, parts.t)
+    assert not np.shares_memory(again.t, whole.t)
