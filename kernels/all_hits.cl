@@ -10,10 +10,11 @@
  * of hits does not depend on the tree.
  *
  * Two passes over the same traversal: COUNT=1 writes how many hits each ray
- * has in [tmin, tmax]; COUNT=0 writes them into [offsets[i], offsets[i + 1])
- * (the host's prefix sum of the counts, each capped at the caller's
- * max_hits): t, u, v and the triangle in the caller's numbering; past the cap
- * a hit replaces the farthest kept one when it is nearer (by t, then triangle
+ * has in [tmin, tmax]; COUNT=0 writes that count too, and the hits into the
+ * ray's slots [offsets[i], offsets[i + 1]) (the host gives a few slots a ray
+ * first, then, to the rays with more hits than that, room for all they keep):
+ * t, u, v and the triangle in the caller's numbering; past the slots a hit
+ * replaces the farthest kept one when it is nearer (by t, then triangle
  * index), so the nearest ones are kept; then the ray's kept hits are sorted
  * in that order (sort_kept).
  *
@@ -21,6 +22,9 @@
  *   STACK_SIZE=n  stack entries; a push beyond n sets FLAG_OVERFLOW and skips
  *                 that subtree (the host sizes it from the tree's depth).
  *   COUNT=0|1     the pass.
+ *   SLOTS_ONLY=1  (COUNT=0) a ray fills its slots with its first hits and
+ *                 replaces none after, unsorted past them: the host traces
+ *                 a ray with more hits than slots again (every_hit.h).
  *   WIDE=1        walk the tree's wide records (kernels/wide.cl, `records`,
  *                 the root's reference (root_x, root_y); WIDTH=4 or 8 lanes)
  *                 instead of its binary nodes: the same hits, one vector slab
@@ -77,10 +81,12 @@ __kernel void all_hits(__global const float4 *nodes, __global const float *recor
                   out_t, out_u, out_v, out_prim, out_prim, &found, &flag, &visits, &leaves,
                   &tested);
 #endif
-#if COUNT
+    /* every hit counted in both passes: the collecting pass's count tells the host
+     * whether the ray's slots held all it keeps (lbvh/queries/all_hits.py) */
     counts[i] = found;
-#else
-    sort_kept(first, min(found, cap), out_t, out_u, out_v, out_prim, out_prim);
+#if !COUNT
+    if (!SLOTS_ONLY || found <= cap)   /* else traced again */
+        sort_kept(first, min(found, cap), out_t, out_u, out_v, out_prim, out_prim);
 #endif
 #if COUNTERS
     work[i] = (int4)(visits - leaves, leaves, tested, 0);

@@ -9,8 +9,8 @@
  * vertex counts once). A hit counts only where the ray enters the triangle's
  * own box (accept_hit), so the set of hits does not depend on the tree.
  *
- * Defines (-D): STACK_SIZE, COUNT, WIDE and WIDTH, as all_hits.cl documents
- * them (WIDE=1 adds wide_tree_hits, the walk through wide records). The
+ * Defines (-D): STACK_SIZE, COUNT, SLOTS_ONLY, WIDE and WIDTH, as all_hits.cl
+ * documents them (WIDE=1 adds wide_tree_hits, the walk through wide records). The
  * includer may define HIT_INSTANCE=1: each kept hit then carries an instance
  * index too, and hits of equal t are ordered by instance before triangle.
  */
@@ -22,6 +22,11 @@
 #endif
 #ifndef COUNT
 #define COUNT 1
+#endif
+/* SLOTS_ONLY=1 (collecting): a ray keeps its first hits while its slots last and
+ * replaces none after; the host traces a ray with more hits than slots again */
+#ifndef SLOTS_ONLY
+#define SLOTS_ONLY 0
 #endif
 
 #if defined(TRIANGLE_TEST) && TRIANGLE_TEST != 0
@@ -50,6 +55,10 @@ inline long hit_slot(long first, int cap, int found, float t, int inst, int prim
                      __global const float *out_t, __global const int *out_inst,
                      __global const int *out_prim) {
     if (found < cap) return first + found;
+#if SLOTS_ONLY
+    /* the host traces a ray with more hits than its slots again: none replaced */
+    return -1;
+#endif
     if (cap <= 0) return -1;
     long far = first;
     for (long k = first + 1; k < first + cap; ++k)

@@ -12,9 +12,10 @@
  * crossing through a shared edge or vertex of a mesh counts once).
  *
  * Two passes, as all_hits.cl's: COUNT=1 writes how many hits each ray has;
- * COUNT=0 writes them into [offsets[i], offsets[i + 1]): t (along the world
- * direction as given), u, v, the triangle (prim_order's numbering: within its
- * mesh, or the mesh's face_ids) and the instance; past the cap a hit replaces
+ * COUNT=0 writes that count too, and the hits into [offsets[i], offsets[i + 1]):
+ * t (along the world direction as given), u, v, the triangle (prim_order's
+ * numbering: within its mesh, or the mesh's face_ids) and the instance; past
+ * the slots (SLOTS_ONLY=0) a hit replaces
  * the farthest kept one when it is nearer (by t, instance, triangle); then the
  * ray's kept hits are sorted in that order (sort_kept, every_hit.h).
  *
@@ -23,6 +24,7 @@
  *                 FLAG_OVERFLOW and skips that subtree (the host raises or
  *                 reports it, never drops it silently).
  *   COUNT=0|1     the pass.
+ *   SLOTS_ONLY=1  as all_hits.cl's.
  *   SLAB_PAD, NO_FP64: kernels/ray_triangle.h.
  * (`work` is all_hits.cl's counters argument, kept so that one host loop
  * drives both kernels; never written here.)
@@ -89,10 +91,12 @@ __kernel void instance_hits(__global const float4 *top_nodes, __global const int
         if (top == 0) break;
         node = stack[--top];
     }
-#if COUNT
+    /* every hit counted in both passes: the collecting pass's count tells the host
+     * whether the ray's slots held all it keeps (lbvh/queries/all_hits.py) */
     counts[i] = found;
-#else
-    sort_kept(first, min(found, cap), out_t, out_u, out_v, out_prim, out_inst);
+#if !COUNT
+    if (!SLOTS_ONLY || found <= cap)   /* else traced again */
+        sort_kept(first, min(found, cap), out_t, out_u, out_v, out_prim, out_inst);
 #endif
     flags[i] = flag;
 }

@@ -147,15 +147,16 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
         for width in wide.WIDTHS:   # through wide records of either width
             add(overlap.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count, "WIDE": 1,
                                       "WIDTH": width})
-    # all_hits.cl: both passes (the count with and without counters), one stack size per
-    # bucket, the slab padding of the device, through binary nodes and the device's wide
-    # records
+    # all_hits.cl: both passes (the count with and without counters; the collecting pass
+    # with and without SLOTS_ONLY), one stack size per bucket, the slab padding of the
+    # device, through binary nodes and the device's wide records
+    hit_passes = ({"COUNT": 1}, {"COUNT": 0}, {"COUNT": 0, "SLOTS_ONLY": 1})
     for ctx in ctxs:
-        for stack, count in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
-            add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count,
+        for stack, hit_pass in itertools.product(traverse.STACK_BUCKETS, hit_passes):
+            add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, **hit_pass,
                                        "SLAB_PAD": traverse.slab_pad(ctx)})
             for width in wide.WIDTHS:   # the records' width, as traverse.cl's
-                add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count,
+                add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, **hit_pass,
                                            "SLAB_PAD": traverse.slab_pad(ctx), "WIDE": 1,
                                            "WIDTH": width})
         for stack in traverse.STACK_BUCKETS:   # segment_work: the counting pass's counters
@@ -164,8 +165,8 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     # instance_hits.cl: all_hits.cl's two passes through a scene (no counters), one stack
     # size per bucket, the slab padding of the device
     for ctx in ctxs:
-        for stack, count in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
-            add(instance_hits.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count,
+        for stack, hit_pass in itertools.product(traverse.STACK_BUCKETS, hit_passes):
+            add(instance_hits.KERNEL_FILE, {"STACK_SIZE": stack, **hit_pass,
                                             "SLAB_PAD": traverse.slab_pad(ctx)})
     # instances.cl: closest and any hit, counters, both triangle tests, one stack per bucket
     for ctx in ctxs:

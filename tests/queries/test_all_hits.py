@@ -9,6 +9,7 @@ import pytest
 import lbvh
 from lbvh.verification import hard_cases, meshes
 from lbvh.verification.oracle import all_hits_brute
+from lbvh.queries.all_hits import FIRST_SLOTS
 
 
 def dense_soup(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -190,3 +191,54 @@ def test_intervals_batches_and_bad_rays():
     with pytest.raises(ValueError, match="max_hits"):
         bvh.all_hits(o, d, max_hits=-1)
     assert len(bvh.all_hits(o[:0], d[:0])) == 0 and len(bvh.count_hits(o[:0], d[:0])) == 0
+
+
+@pytest.mark.parametrize("max_hits", [None, 0, 1, FIRST_SLOTS - 1, FIRST_SLOTS, FIRST_SLOTS + 1, 30])
+def test_rays_with_more_hits_than_the_first_slots_are_collected_again(max_hits):
+    """all_hits keeps each ray's nearest FIRST_SLOTS hits in one pass and traces the
+    rays with more again: stacked squares of shrinking size give rays of every count
+    around FIRST_SLOTS in one batch (and across batches), each equal to the twin's."""
+    quad = np.float32([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]])
+    layers = 2 * FIRST_SLOTS + 4
+    v = np.concatenate([quad * np.float32([layers - k, layers - k, 1]) + np.float32([0, 0, k])
+                        for k in range(layers)]).astype(np.float32)
+    f = np.concatenate([np.uint32([[0, 1, 2], [0, 2, 3]]) + 4 * k for k in range(layers)])
+    f = f[np.random.default_rng(8).permutation(len(f))]
+    x = np.arange(layers, dtype=np.float32) + np.float32(0.37)
+    o = np.stack([x, np.full_like(x, 0.21), np.full_like(x, -3)], axis=1)
+    o = np.concatenate([o, o[::-1]]).astype(np.float32)
+    d = np.tile(np.float32([0, 0, 1]), (len(o), 1))
+    want = all_hits_brute(v, f, o, d, dtype=np.float32)
+    assert set(want.counts.tolist()) >= {FIRST_SLOTS - 1, FIRST_SLOTS, FIRST_SLOTS + 1,
+                                         layers}
+    bvh = lbvh.build(v, f)
+    for batch in (len(o), 7):
+        got = bvh.all_hits(o, d, max_hits=max_hits, batch_size=batch)
+        assert np.array_equal(got.total, want.counts)
+        k = want.counts if max_hits is None else np.minimum(want.counts, max_hits)
+        assert np.array_equal(got.counts, k)
+        for i in range(len(o)):
+            w = want.of(i)
+            nearest = slice(w.start, w.start + k[i])
+            assert np.array_equal(got.t[got.of(i)], want.t[nearest]), (i, max_hits, batch)
+            assert np.array_equal(got.prim[got.of(i)], want.prim[nearest])
+            assert np.array_equal(got.u[got.of(i)], want.u[nearest])
+    assert np.array_equal(bvh.count_hits(o, d), want.counts)
+
+
+def test_a_large_batch_samples_its_slots_and_answers_as_the_twin():
+    """A batch of at least 64 SAMPLE_EVERY rays sizes its slots from a counting pass
+    over a sample (first_slots); every hit, all or capped, is still the twin's."""
+    from lbvh.queries.all_hits import SAMPLE_EVERY, SLOT_RANGE
+    v, f = dense_soup(600, 9)
+    bvh = lbvh.build(v, f)
+    n = 64 * SAMPLE_EVERY + 123
+    o, d = random_rays(v, n, 10)
+    want = all_hits_brute(v, f, o, d, dtype=np.float32)
+    assert want.counts.max() > SLOT_RANGE[0]    # some rays are traced again
+    same(bvh.all_hits(o, d), want)
+    capped = bvh.all_hits(o, d, max_hits=2)
+    assert np.array_equal(capped.counts, np.minimum(want.counts, 2))
+    assert np.array_equal(capped.total, want.counts)
+    firsts = want.offsets[:-1][want.counts > 0]
+    assert np.array_equal(capped.t[capped.offsets[:-1][want.counts > 0]], want.t[firsts])
