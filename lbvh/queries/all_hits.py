@@ -297,9 +297,9 @@ def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, dep
     ``work`` (``int32 (N, 4)``, counting only, all_hits.cl) receives its counters;
     ``defines``: more of the kernel's compile-time choices (all_hits.cl's ``WIDE``).
 
-    Collecting: one pass keeps each ray's nearest ``min(FIRST_SLOTS, cap)`` hits and
-    counts them all; the rays that kept fewer than they need are traced again in a pass
-    that has room for all they need (their counts known)."""
+    Collecting: one pass gives each ray :func:`first_slots` slots and counts its hits;
+    the rays with more hits to keep than slots are traced again in a pass that has room
+    for all they keep (their counts known)."""
     n = len(rays)
     total = np.zeros(n, np.int64)
     flags = np.zeros(n, np.int32)
@@ -348,10 +348,7 @@ def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, dep
                 need = keep[again]
                 sub_offsets = np.zeros(len(again) + 1, np.int64)
                 np.cumsum(need, out=sub_offsets[1:])
-                sub = Rays(part.origins[again], part.directions[again],
-                           part.tmin[again] if stride else part.tmin,
-                           part.tmax[again] if stride else part.tmax)
-                sub_counts, sub_flags, _, sub_cols = pass_.run(sub, sub_offsets)
+                _, sub_flags, _, sub_cols = pass_.run(_pick(part, again), sub_offsets)
                 part_flags[again] |= sub_flags
                 rank = np.arange(int(sub_offsets[-1])) - np.repeat(sub_offsets[:-1], need)
                 dest = np.repeat(offsets[:-1][again], need) + rank
@@ -388,14 +385,17 @@ def first_slots(pass_: "_Pass", rays: Rays, cap: int) -> int:
     if m < 64 * SAMPLE_EVERY:
         slots = FIRST_SLOTS
     else:
-        pick = np.arange(0, m, SAMPLE_EVERY)
-        lo, hi, stride = rays.kernel_intervals()
-        sample = Rays(rays.origins[pick], rays.directions[pick], lo[pick] if stride else lo,
-                      hi[pick] if stride else hi)
-        counts = pass_.run(sample, None)[0]
+        counts = pass_.run(_pick(rays, np.arange(0, m, SAMPLE_EVERY)), None)[0]
         need = int(np.ceil(np.quantile(counts, SLOT_QUANTILE)))
         slots = int(np.clip(need, *SLOT_RANGE))
     return slots if cap < 0 else min(slots, cap)
+
+
+def _pick(rays: Rays, index: np.ndarray) -> Rays:
+    """The rays ``index`` names (copies; one interval for all stays one)."""
+    lo, hi, stride = rays.kernel_intervals()
+    return Rays(rays.origins[index], rays.directions[index], lo[index] if stride else lo,
+                hi[index] if stride else hi)
 
 
 def _returned(dtypes: tuple) -> tuple:
@@ -441,7 +441,8 @@ class _Pass:
                 dev.run(ctx, self.kernel_file, self.kernel, launch, *args,
                         *[bufs["flags"]] * len(self.dtypes), bufs["flags"],
                         bufs.get("work", bufs["flags"]),
-                        defines={**self.defines, "COUNT": 1, **({"COUNTERS": 1} if counters else {})})
+                        defines={**self.defines, "COUNT": 1,
+                                 **({"COUNTERS": 1} if counters else {})})
             else:
                 out = [mem.alloc(4 * max(size, 1)) for _ in self.dtypes]
                 dev.run(ctx, self.kernel_file, self.kernel, launch, *args, *out, bufs["flags"],
