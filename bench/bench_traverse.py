@@ -25,7 +25,9 @@ round, so that the machine's noise hits all alike):
   the default ``lbvh.build`` tree (``lbvh``: key bits auto), the same with
   ``collapse=True`` (``lbvh+collapse``), the same with one round of 5-leaf
   treelets before the collapse (``lbvh+treelets1-5+collapse``: about a third of
-  the work of a 7-leaf round), with two rounds of 7-leaf treelet
+  the work of a 7-leaf round), with three rounds of them, the second and third
+  over the subtrees of at least 14 and 28 leaves (``lbvh+treelets3-5+collapse``),
+  with two rounds of 7-leaf treelet
   restructuring before the collapse (``lbvh+treelets2+collapse``: a lower SAH
   cost for a longer build), the default tree again with Moller-Trumbore instead
   of the watertight test (``lbvh (moller)``: the price of watertightness, in a
@@ -135,6 +137,13 @@ TREELETS = f"{OURS}+treelets{TREELET_ROUNDS}+collapse"
 #: a third of the work of a 7-leaf round, before the collapse: a candidate for the best
 #: tree built in under issue 16's build-time budget.
 SMALL_TREELETS = f"{OURS}+treelets1-5+collapse"
+#: Rounds of the 5-leaf restructuring of :data:`ROUNDS_TREELETS`.
+SMALL_TREELET_ROUNDS = 3
+#: Several rounds of 5-leaf treelets, the later ones only over the larger subtrees
+#: (``treelet_min_leaves``, default): about the SAH cost of two 7-leaf rounds for
+#: about half their build time (bench/README.md), another candidate for the best
+#: tree built in under the budget.
+ROUNDS_TREELETS = f"{OURS}+treelets{SMALL_TREELET_ROUNDS}-5+collapse"
 #: The trees the targets are judged on, each on its own line (``sah``: with ``--sah``).
 TARGET_TREES = (OURS, TREELETS, "sah")
 #: The default tree traced with Moller-Trumbore instead of the watertight test.
@@ -159,7 +168,7 @@ GOAL_BEST = 1.0
 GOAL_BUILD_FACTOR = 5.0
 #: Our trees that may be the goal's best tree (the fastest on closest hits among those
 #: built fast enough; the default tree is one of them).
-GOAL_CANDIDATES = (OURS, f"{OURS}+collapse", SMALL_TREELETS, TREELETS, "sah")
+GOAL_CANDIDATES = (OURS, f"{OURS}+collapse", SMALL_TREELETS, ROUNDS_TREELETS, TREELETS, "sah")
 #: Timed builds per device tree (after an untimed one: kernel compilation).
 BUILD_REPEATS = 3
 
@@ -448,6 +457,8 @@ def our_trees(scene: common.Scene, ctx: dev.Context, with_sah: bool) -> tuple[li
     """``(name, lbvh.build options)`` of our trees for this scene, and notes on trees left out."""
     trees = [(OURS, {}), (f"{OURS}+collapse", {"collapse": True}),
              (SMALL_TREELETS, {"treelet_rounds": 1, "treelet_leaves": 5, "collapse": True}),
+             (ROUNDS_TREELETS, {"treelet_rounds": SMALL_TREELET_ROUNDS, "treelet_leaves": 5,
+                                "collapse": True}),
              (TREELETS, {"treelet_rounds": TREELET_ROUNDS, "collapse": True})]
     notes = []
     if with_sah:

@@ -185,12 +185,29 @@ inline void restructure_at(int root, __global float *node_floats, vfloat_t *vnod
     rebuild_treelet(&t, sub_lo, sub_hi, sub_cost, sub_split, node_floats, parent, cost);
 }
 
-/* Leaves are nodes leaf_first + k (Karras numbering) or leaf_nodes[k]. */
+/* Only the cost of node x, whose children's costs are final: what
+ * optimal_topology gives for a treelet of x's two children (the children's
+ * union is x's box, as the refit and every rebuild leave it), same operations. */
+inline void cost_only(int x, vfloat_t *vnode_floats, vint_t *node_words, vfloat_t *vcost,
+                      float scale, float c_node) {
+    float3 lo, hi;
+    read_box(vnode_floats, x, &lo, &hi);
+    const float below = vcost[child_word(node_words, x, 0)] + vcost[child_word(node_words, x, 1)];
+    vcost[x] = c_node * scaled_half_area(lo, hi, scale) + below;
+}
+
+/* Leaves are nodes leaf_first + k (Karras numbering) or leaf_nodes[k].
+ * `sizes` (scratch, an int per node) gets the number of BVH leaves below each
+ * node on the way up; a node with fewer than `min_leaves` is not a treelet
+ * root this round, only its cost is updated (the treelets of small subtrees
+ * change little once a first round has rebuilt them; Karras & Aila 2013,
+ * section 5, skip them too). */
 __kernel void restructure_treelets(__global float4 *nodes, __global int *parent,
                                    __global float *cost, __global int *arrivals,
-                                   __global const int *leaf_nodes, const int use_leaf_list,
-                                   const int leaf_first, const int num_leaves, const int per_item,
-                                   const int root, const float c_node, const float c_tri) {
+                                   __global int *sizes, __global const int *leaf_nodes,
+                                   const int use_leaf_list, const int leaf_first,
+                                   const int num_leaves, const int per_item, const int root,
+                                   const float c_node, const float c_tri, const int min_leaves) {
     const int gid = get_global_id(0);
     const int first = chunk_first(gid, per_item, num_leaves);
     const int last = chunk_last(gid, per_item, num_leaves);
@@ -204,14 +221,23 @@ __kernel void restructure_treelets(__global float4 *nodes, __global int *parent,
         read_box(vnode_floats, leaf, &lo, &hi);
         const float count = (float)(-child_word(node_words, leaf, 1));
         cost[leaf] = c_tri * count * scaled_half_area(lo, hi, scale);
+        sizes[leaf] = 1;
     }
+    vint_t *vsizes = (vint_t *)sizes;
     for (int k = first; k < last; ++k) {
         int node = use_leaf_list ? leaf_nodes[k] : leaf_first + k;
         for (;;) {
             const int p = parent[node];
             if (p < 0 || !second_arrival(arrivals, p)) break;
-            restructure_at(p, node_floats, vnode_floats, node_words, parent, cost,
-                           (vfloat_t *)cost, scale, c_node);
+            const int size = vsizes[child_word(node_words, p, 0)] +
+                             vsizes[child_word(node_words, p, 1)];
+            vsizes[p] = size;
+            if (size >= min_leaves) {
+                restructure_at(p, node_floats, vnode_floats, node_words, parent, cost,
+                               (vfloat_t *)cost, scale, c_node);
+            } else {
+                cost_only(p, vnode_floats, node_words, (vfloat_t *)cost, scale, c_node);
+            }
             node = p;
         }
     }

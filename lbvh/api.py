@@ -45,7 +45,7 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
           key_bits: int | str | _Default = DEFAULT,
           auto_duplicate_fraction: float | _Default = DEFAULT,
           treelet_rounds: int | _Default = DEFAULT, treelet_leaves: int | _Default = DEFAULT,
-          c_node: float | _Default = DEFAULT,
+          treelet_min_leaves: int | _Default = DEFAULT, c_node: float | _Default = DEFAULT,
           c_tri: float | _Default = DEFAULT, max_leaf_size: int | _Default = DEFAULT,
           progress: bool | None = None, **unknown: Any) -> BVH:
     """Build a BVH over a triangle mesh: the device LBVH, or the serial SAH reference.
@@ -70,7 +70,8 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
         progress: a progress bar on stderr for the long builds (the SAH reference
             over 200K triangles or more): ``None`` (default) when stderr is a
             terminal, ``True`` or ``False`` to force it (:mod:`lbvh.progress`).
-        key_bits, auto_duplicate_fraction, treelet_rounds, treelet_leaves: the fields of
+        key_bits, auto_duplicate_fraction, treelet_rounds, treelet_leaves,
+            treelet_min_leaves: the fields of
             ``LBVHOptions`` as keywords (``key_bits``: 30, 63 or ``"auto"``);
             not given, the documented default.
         c_node, c_tri, max_leaf_size: the fields of ``SAHOptions`` (``"sah"``) or, with
@@ -92,6 +93,7 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
     """
     given = {"key_bits": key_bits, "auto_duplicate_fraction": auto_duplicate_fraction,
              "treelet_rounds": treelet_rounds, "treelet_leaves": treelet_leaves,
+             "treelet_min_leaves": treelet_min_leaves,
              "c_node": c_node, "c_tri": c_tri,
              "max_leaf_size": max_leaf_size}
     fields = {**{k: v for k, v in given.items() if v is not DEFAULT}, **unknown}

@@ -34,7 +34,7 @@ import numpy as np
 
 from .api import build
 from .builders.options import BUILDERS
-from .builders.restructure import TREELET_LEAVES
+from .builders.restructure import TREELET_LEAVES, TREELET_MIN_LEAVES
 from .device import DeviceError, all_devices, describe, find_device, get_context, pocl_target
 from .data import MESHES
 from .mesh import MissingFileError
@@ -154,6 +154,10 @@ def _add_build_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--treelet-leaves", type=int, default=TREELET_LEAVES, metavar="N",
                    help="lbvh only: leaves per treelet, 3-7; 5 costs about a third of 7 per "
                         f"round (default {TREELET_LEAVES})")
+    p.add_argument("--treelet-min-leaves", type=int, default=TREELET_MIN_LEAVES, metavar="N",
+                   help="lbvh only: after the first round, restructure only subtrees of at least "
+                        "N leaves, 2N in the third round...; 0: every subtree in every round "
+                        f"(default {TREELET_MIN_LEAVES})")
     p.add_argument("--keys", choices=["auto", "30", "63"], default="auto",
                    help="Morton key width (default: auto, chosen from the scene)")
     p.add_argument("--device", default=None,
@@ -164,14 +168,13 @@ def _build(scene, args: argparse.Namespace, **extra: Any):
     """The tree the build options ask for; for a file that places several meshes, an
     :class:`lbvh.Scene` of its instances (each mesh built once with those options).
     ``extra``: more options of :func:`lbvh.build`."""
+    options = dict(builder=args.builder, collapse=args.collapse, treelet_rounds=args.treelets,
+                   treelet_leaves=args.treelet_leaves, treelet_min_leaves=args.treelet_min_leaves,
+                   key_bits=args.keys, device=args.device, **extra)
     source = scene.extras.get("instances")
     if source is not None:
-        return build(source, builder=args.builder, collapse=args.collapse,
-                     treelet_rounds=args.treelets, treelet_leaves=args.treelet_leaves,
-                     key_bits=args.keys, device=args.device, **extra)
-    return build(scene.vertices, scene.faces, builder=args.builder, collapse=args.collapse,
-                 treelet_rounds=args.treelets, treelet_leaves=args.treelet_leaves,
-                 key_bits=args.keys, device=args.device, **extra)
+        return build(source, **options)
+    return build(scene.vertices, scene.faces, **options)
 
 
 def _scene_name(text: str) -> str:

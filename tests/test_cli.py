@@ -17,6 +17,7 @@ from lbvh.version import __version__
 
 REPO = Path(__file__).resolve().parents[1]
 CORNELL = str(REPO / "scenes" / "cornell.json")
+TEAPOT = str(REPO / "scenes" / "teapot.json")
 #: A camera in front of the teapot, as a scene file or views file holds it.
 FRONT = {"position": [0.5, 2.0, 7.0], "target": [0.0, 1.2, 0.0], "up": [0, 1, 0], "fov": 35}
 
@@ -154,6 +155,20 @@ def test_info_builds_with_smaller_treelets(capsys):
     code, out, err = _run(capsys, "info", CORNELL, "--treelets", "1", "--treelet-leaves", "5",
                           "--validate")
     assert code == 0 and "validate:    ok" in out, err
+
+
+def test_info_restructures_later_rounds_over_large_subtrees_only(capsys):
+    """--treelet-min-leaves reaches the build: beyond every subtree, later rounds
+    keep the one-round tree; a bad value is refused by name."""
+    def mean_leaf_depth(rounds, *extra):
+        code, out, err = _run(capsys, "info", TEAPOT, "--treelets", rounds, "--json", *extra)
+        assert code == 0, err
+        return json.loads(out)["mean_leaf_depth"]
+    one = mean_leaf_depth("1")
+    assert mean_leaf_depth("2", "--treelet-min-leaves", "1000000") == one
+    assert mean_leaf_depth("2", "--treelet-min-leaves", "0") != one
+    code, out, err = _run(capsys, "info", TEAPOT, "--treelets", "2", "--treelet-min-leaves", "-3")
+    assert code != 0 and "treelet_min_leaves" in err
 
 
 def test_devices_lists_the_default(capsys):

@@ -29,7 +29,8 @@ import numpy as np
 from .cost import C_NODE, C_TRI, MAX_LEAF_SIZE, check_sah_constants
 from .morton import AUTO_DUPLICATE_FRACTION
 from .ray_sampled import as_ray_sample
-from .restructure import TREELET_LEAVES, check_rounds, check_treelet_leaves
+from .restructure import (TREELET_LEAVES, TREELET_MIN_LEAVES, check_min_leaves, check_rounds,
+                          check_treelet_leaves)
 
 #: ``key_bits`` as the caller gives it -> bits of a key (``None``: chosen per mesh).
 KEY_CHOICES = {"auto": None, 30: 32, 63: 64, "30": 32, "63": 64}
@@ -53,11 +54,16 @@ class LBVHOptions:
         treelet_leaves: leaves per treelet, 3 to 7 (default 7, as Karras & Aila):
             a round with 5 costs about a third of one with 7 and on the bench
             scenes gives most of its gain.
+        treelet_min_leaves: after the first round, rebuild only the treelets of
+            subtrees with at least this many leaves, doubled in each further round
+            (default 14; 0: every treelet in every round). The first round has
+            rebuilt the lower levels; see :func:`lbvh.builders.restructure.round_min_leaves`.
     """
     key_bits: int | str = "auto"
     auto_duplicate_fraction: float = AUTO_DUPLICATE_FRACTION
     treelet_rounds: int = 0
     treelet_leaves: int = TREELET_LEAVES
+    treelet_min_leaves: int = TREELET_MIN_LEAVES
 
     def __post_init__(self) -> None:
         try:
@@ -66,6 +72,7 @@ class LBVHOptions:
             raise ValueError(f"key_bits: {self.key_bits!r}; expected 30, 63 or 'auto'") from None
         check_rounds(self.treelet_rounds)
         check_treelet_leaves(self.treelet_leaves)
+        check_min_leaves(self.treelet_min_leaves)
 
     @property
     def wanted_bits(self) -> int | None:

@@ -119,7 +119,8 @@ def build_tree(ctx: dev.Context, mesh: Mesh, options: LBVHOptions = LBVHOptions(
         tree = Tree(ctx, nodes, parent, prim_order, root=0, num_nodes=2 * n - 1, num_prims=n,
                     builder="lbvh")
         tree, evs = restructure(tree, options.treelet_rounds, mem,
-                                leaves=options.treelet_leaves)
+                                leaves=options.treelet_leaves,
+                                min_leaves=options.treelet_min_leaves)
         if evs:
             events["restructure"] = evs
     ctx.queue.finish()

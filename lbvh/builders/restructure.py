@@ -34,34 +34,50 @@ KERNEL_FILE = "restructure.cl"
 TREELET_LEAVES = 7
 #: The sizes a treelet may have: below 3 leaves there is one topology only.
 TREELET_SIZES = range(3, TREELET_LEAVES + 1)
+#: After the first round, only subtrees of at least this many leaves (doubled in
+#: each further round) are rebuilt (:func:`round_min_leaves`).
+TREELET_MIN_LEAVES = 14
 
 
 def restructure_treelets(ctx: Context, nodes: cl.Buffer, parent: cl.Buffer, cost: cl.Buffer,
-                         arrivals: cl.Buffer, num_nodes: int, root: int, rounds: int,
-                         leaf_first: int, num_leaves: int, leaf_nodes: cl.Buffer | None = None,
-                         c_node: float = C_NODE, c_tri: float = C_TRI,
-                         leaves: int = TREELET_LEAVES) -> list[cl.Event]:
+                         arrivals: cl.Buffer, sizes: cl.Buffer, num_nodes: int, root: int,
+                         rounds: int, leaf_first: int, num_leaves: int,
+                         leaf_nodes: cl.Buffer | None = None, c_node: float = C_NODE,
+                         c_tri: float = C_TRI, leaves: int = TREELET_LEAVES,
+                         min_leaves: int = TREELET_MIN_LEAVES) -> list[cl.Event]:
     """``rounds`` bottom-up restructuring passes over a tree whose boxes are final.
 
-    ``cost`` (``float32`` per node) and ``arrivals`` (``int32`` per node) are
-    scratch. Leaves are ``leaf_first ..`` (Karras numbering) or ``leaf_nodes``;
-    ``leaves``: leaves per treelet (:data:`TREELET_SIZES`).
+    ``cost`` (``float32`` per node), ``arrivals`` and ``sizes`` (``int32`` per
+    node) are scratch. Leaves are ``leaf_first ..`` (Karras numbering) or
+    ``leaf_nodes``; ``leaves``: leaves per treelet (:data:`TREELET_SIZES`);
+    ``min_leaves``: see :func:`round_min_leaves`.
     """
     events = []
     launch = ctx.launch(num_leaves, min_per_item=256)
     use_list = leaf_nodes is not None
-    for _ in range(rounds):
+    for r in range(rounds):
         events.append(clear_arrivals(ctx, arrivals, num_nodes))
         events.append(run(ctx, KERNEL_FILE, "restructure_treelets", launch, nodes, parent, cost,
-                          arrivals, leaf_nodes if use_list else arrivals, use_list, leaf_first,
-                          num_leaves, launch.per_item, root, np.float32(c_node),
-                          np.float32(c_tri), defines={"TREELET_LEAVES": check_treelet_leaves(leaves)}))
+                          arrivals, sizes, leaf_nodes if use_list else arrivals, use_list,
+                          leaf_first, num_leaves, launch.per_item, root, np.float32(c_node),
+                          np.float32(c_tri), np.int32(round_min_leaves(r, min_leaves)),
+                          defines={"TREELET_LEAVES": check_treelet_leaves(leaves)}))
     return events
 
 
+def round_min_leaves(r: int, min_leaves: int = TREELET_MIN_LEAVES) -> int:
+    """The smallest subtree (in BVH leaves) whose root round ``r`` (from 0) rebuilds
+    as a treelet: every node in the first round, ``min_leaves * 2**(r - 1)`` in
+    round ``r >= 1`` (0: every node in every round). A later round's gain is in the
+    upper levels: the lower ones were rebuilt by the first round."""
+    if r == 0 or min_leaves == 0:
+        return 0
+    return min(min_leaves << (r - 1), 1 << 30)
+
+
 def restructure(tree: Tree, rounds: int, mem: Scope, c_node: float = C_NODE,
-                c_tri: float = C_TRI, leaves: int = TREELET_LEAVES
-                ) -> tuple[Tree, list[cl.Event]]:
+                c_tri: float = C_TRI, leaves: int = TREELET_LEAVES,
+                min_leaves: int = TREELET_MIN_LEAVES) -> tuple[Tree, list[cl.Event]]:
     """The optimiser: ``rounds`` of treelet restructuring of ``tree`` in place (its
     boxes final), with treelets of ``leaves`` leaves; returns the tree, renamed
     ``<builder>+treelets<rounds>`` (``+treelets<rounds>-<leaves>`` for another size
@@ -70,11 +86,12 @@ def restructure(tree: Tree, rounds: int, mem: Scope, c_node: float = C_NODE,
         return tree, []
     cost = mem.alloc(4 * tree.num_nodes, scratch=True)
     arrivals = mem.alloc(4 * tree.num_nodes, scratch=True)
+    sizes = mem.alloc(4 * tree.num_nodes, scratch=True)
     leaf_list, leaf_first, num_leaves = tree.leaf_walks()
-    events = restructure_treelets(tree.ctx, tree.nodes, tree.parent, cost, arrivals, tree.num_nodes,
-                                  tree.root, rounds, leaf_first, num_leaves, leaf_list, c_node,
-                                  c_tri, leaves)
-    mem.free(cost, arrivals)
+    events = restructure_treelets(tree.ctx, tree.nodes, tree.parent, cost, arrivals, sizes,
+                                  tree.num_nodes, tree.root, rounds, leaf_first, num_leaves,
+                                  leaf_list, c_node, c_tri, leaves, min_leaves)
+    mem.free(cost, arrivals, sizes)
     size = "" if leaves == TREELET_LEAVES else f"-{leaves}"
     return dataclasses.replace(tree, builder=f"{tree.builder}+treelets{rounds}{size}"), events
 
@@ -93,6 +110,14 @@ def check_treelet_leaves(leaves: object) -> int:
         raise ValueError(f"treelet_leaves: {leaves!r}; expected an integer from "
                          f"{TREELET_SIZES[0]} to {TREELET_SIZES[-1]}")
     return int(leaves)
+
+
+def check_min_leaves(min_leaves: object) -> int:
+    """``treelet_min_leaves`` as an int >= 0, or a ValueError naming it."""
+    if isinstance(min_leaves, bool) or not isinstance(min_leaves, (int, np.integer)) \
+            or not 0 <= min_leaves <= 1 << 30:
+        raise ValueError(f"treelet_min_leaves: {min_leaves!r}; expected an integer from 0 to 2**30")
+    return int(min_leaves)
 
 
 # -- pure Python twin ---------------------------------------------------------------
@@ -197,8 +222,14 @@ class _Treelets:
             self.nodes["a"][node], self.nodes["b"][node] = kids
             self.cost[node] = sub_cost[s]
 
-    def run(self, root: int) -> None:
-        """One round: every internal node after both of its subtrees (post order)."""
+    def cost_only(self, x: int) -> None:
+        """Kernel cost_only: x's cost from its children's, as a two-leaf treelet's."""
+        a, b = self.children(x)
+        self.cost[x] = self.c_node * self.area(self.lo[x], self.hi[x]) + (self.cost[a] + self.cost[b])
+
+    def run(self, root: int, min_leaves: int = 0) -> None:
+        """One round: every internal node after both of its subtrees (post order);
+        those with fewer than ``min_leaves`` leaves below only get their cost."""
         order, stack = [], [(root, False)]
         while stack:
             x, children_done = stack.pop()
@@ -210,16 +241,23 @@ class _Treelets:
             stack.append((x, True))
             left, right = self.children(x)
             stack += [(right, False), (left, False)]
+        size = {}
         with np.errstate(over="ignore", under="ignore"):
             for x in order:
-                self.restructure(x)
+                a, b = self.children(x)
+                size[x] = size.get(a, 1) + size.get(b, 1)
+                if size[x] >= min_leaves:
+                    self.restructure(x)
+                else:
+                    self.cost_only(x)
 
 
 def restructure_python(nodes: np.ndarray, parent: np.ndarray, root: int, rounds: int = 1,
                        c_node: float = C_NODE, c_tri: float = C_TRI,
-                       leaves: int = TREELET_LEAVES) -> tuple[np.ndarray, np.ndarray]:
+                       leaves: int = TREELET_LEAVES,
+                       min_leaves: int = TREELET_MIN_LEAVES) -> tuple[np.ndarray, np.ndarray]:
     """Serial twin of :func:`restructure_treelets` on host copies of a tree with final boxes,
-    treelets of ``leaves`` leaves.
+    treelets of ``leaves`` leaves, rounds as :func:`round_min_leaves` says.
 
     Returns new ``nodes`` (:data:`NODE_DTYPE`) and ``parent`` (``int32``); the
     inputs are not modified.
@@ -227,6 +265,6 @@ def restructure_python(nodes: np.ndarray, parent: np.ndarray, root: int, rounds:
     nodes = np.array(nodes, dtype=NODE_DTYPE, copy=True)
     parent = np.array(parent, dtype=np.int32, copy=True)
     work = _Treelets(nodes, parent, root, c_node, c_tri, leaves)
-    for _ in range(rounds):
-        work.run(root)
+    for r in range(rounds):
+        work.run(root, round_min_leaves(r, min_leaves))
     return work.nodes, work.parent

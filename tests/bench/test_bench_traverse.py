@@ -31,7 +31,8 @@ def _finite_positive(x) -> bool:
 
 
 def _expected_tracers() -> set[str]:
-    ours = [bench.OURS, f"{bench.OURS}+collapse", bench.SMALL_TREELETS, bench.TREELETS]
+    ours = [bench.OURS, f"{bench.OURS}+collapse", bench.SMALL_TREELETS, bench.ROUNDS_TREELETS,
+            bench.TREELETS]
     names = set(ours) | {bench.MOLLER}
     if bench.kernel_only_missing() is None:
         names |= {f"{n} (kernel only)" for n in ours}

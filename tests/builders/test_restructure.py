@@ -9,7 +9,7 @@ import lbvh
 from conftest import random_soup, shared_mesh, shipped_mesh
 from lbvh.verification.quality import sah_cost
 from lbvh.builders.refit import refit_numpy
-from lbvh.builders.restructure import restructure_python
+from lbvh.builders.restructure import TREELET_MIN_LEAVES, restructure_python, round_min_leaves
 
 
 def _huge():
@@ -178,3 +178,51 @@ def test_bad_treelet_sizes_are_refused(bad):
     v, f = random_soup(10)
     with pytest.raises(ValueError, match="treelet_leaves"):
         lbvh.build(v, f, treelet_rounds=1, treelet_leaves=bad)
+
+
+@pytest.mark.parametrize("min_leaves", [0, 3, 14, 1 << 30])
+@pytest.mark.parametrize("name", ["teapot", "soup", "mixed", "huge", "identical"])
+def test_later_rounds_over_large_subtrees_match_the_twin_bit_for_bit(name, min_leaves):
+    v, f = MESHES[name]()
+    plain = lbvh.build(v, f)
+    better = lbvh.build(v, f, treelet_rounds=3, treelet_leaves=5, treelet_min_leaves=min_leaves)
+    better.validate()
+    nodes, parent = restructure_python(plain.nodes, plain.parent, plain.root, 3, leaves=5,
+                                       min_leaves=min_leaves)
+    assert better.nodes.tobytes() == nodes.tobytes()
+    assert np.array_equal(better.parent, parent)
+
+
+def test_round_min_leaves_doubles_after_the_first_round():
+    assert [round_min_leaves(r, 14) for r in range(4)] == [0, 14, 28, 56]
+    assert [round_min_leaves(r, 0) for r in range(3)] == [0, 0, 0]
+    assert round_min_leaves(40, 14) == 1 << 30          # no overflow of the kernel's int
+    assert lbvh.LBVHOptions().treelet_min_leaves == TREELET_MIN_LEAVES == 14
+
+
+def test_a_later_round_over_no_subtree_changes_nothing():
+    """With every subtree below the threshold, rounds after the first only recompute
+    costs: the tree is the one-round tree, bit for bit."""
+    v, f = _mixed_sizes()
+    one = lbvh.build(v, f, treelet_rounds=1)
+    three = lbvh.build(v, f, treelet_rounds=3, treelet_min_leaves=1 << 30)
+    assert three.nodes.tobytes() == one.nodes.tobytes()
+    assert np.array_equal(three.parent, one.parent)
+
+
+def test_later_rounds_over_large_subtrees_keep_most_of_the_gain():
+    """Skipping the small subtrees after the first round changes the cost little:
+    the later rounds' gain is in the upper levels."""
+    v, f = _mixed_sizes()
+    one = sah_cost(lbvh.build(v, f, treelet_rounds=1))
+    every = sah_cost(lbvh.build(v, f, treelet_rounds=3, treelet_min_leaves=0))
+    large = sah_cost(lbvh.build(v, f, treelet_rounds=3))
+    assert every < one and large < one
+    assert large <= every + 0.25 * (one - every)
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5, True, "14", 1 << 31])
+def test_bad_min_leaves_is_refused_by_name(bad):
+    v, f = random_soup(10)
+    with pytest.raises(ValueError, match="treelet_min_leaves"):
+        lbvh.build(v, f, treelet_rounds=2, treelet_min_leaves=bad)
