@@ -16,17 +16,21 @@
  * a_t (c_t - p)^T with c_t the centroids; the second-order term is
  * SECOND_ORDER_W's. "Far enough" is |r| > beta * R, R the distance from p to
  * the farthest corner of the node's box (every triangle of the node lies
- * within R of p).
+ * within R of p), and |r|^5 >= A R^3 / (4 pi e), A the node's triangle area:
+ * the expansion's error, about A / (4 pi r^2) (R / r)^3, at most e
+ * (winding_moments.py NODE_ERROR), so that a node of much area for its radius
+ * is opened where its expansion would be poor.
  *
  * Moments, ROWS floats per node (winding_moments.cl makes them):
  *   [0..2] p, [3] R^2, [4..6] N, [7..15] M row by row (M[j][k] = m[7 + 3j + k]),
- *   with ORDER=2 also [16..18] g and [19..36] K (SECOND_ORDER_W).
+ *   with ORDER=2 also [16..18] g and [19..36] K (SECOND_ORDER_W); last
+ *   ([ROWS - 1]) the far floor A R^3 / (4 pi e).
  * beta2 is beta^2.
  *
  * With WIDE=1 the walk goes through the tree's wide records (kernels/wide.cl)
  * instead: `moments` then holds, per record, the same ROWS values of each
  * lane's binary node as ROWS rows of WIDTH floats (winding_moments.py
- * wide_moments; an empty lane has R^2 = -1, so it is always far, and adds 0),
+ * wide_moments; an empty lane has R^2 and the floor -1, so it is always far, and adds 0),
  * and one record's lanes are tested and expanded in one vector computation;
  * the lanes that are near are summed (leaves) or pushed (records). Every node
  * expanded meets the same test as in the binary walk; a node that the binary
@@ -71,10 +75,11 @@
 #define ORDER 2
 #endif
 #if ORDER == 2
-#define ROWS 37
+#define ROWS 38
 #else
-#define ROWS 16
+#define ROWS 17
 #endif
+#define FLOOR_ROW (ROWS - 1)
 
 #define FLAG_OVERFLOW 1
 
@@ -201,9 +206,10 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
                 const floatw rx = DIFF(m[0], (floatw)(q.x)), ry = DIFF(m[1], (floatw)(q.y)),
                              rz = DIFF(m[2], (floatw)(q.z));
                 const floatw r2 = rx * rx + ry * ry + rz * rz;
-                const intw far = r2 > (floatw)(beta2) * m[3];
+                const floatw r1 = SQRTW(r2);
+                const intw far = (r2 > (floatw)(beta2) * m[3]) & (r2 * r2 * r1 >= m[FLOOR_ROW]);
                 /* the far lanes' expansions (Barill et al. 2018), as the binary walk's */
-                const floatw inv = (floatw)(1.0f) / SQRTW(r2);
+                const floatw inv = (floatw)(1.0f) / r1;
                 const floatw inv3 = inv * inv * inv;
                 const floatw mrx = m[7] * rx + m[8] * ry + m[9] * rz;
                 const floatw mry = m[10] * rx + m[11] * ry + m[12] * rz;
@@ -244,9 +250,10 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
             const float3 r = DIFF((float3)(m[0], m[1], m[2]), q);
             const float r2 = dot(r, r);
             const int a = as_int(nodes[2 * node].w), b = as_int(nodes[2 * node + 1].w);
-            if (r2 > beta2 * m[3]) {
+            const float r1 = sqrt1(r2);
+            if (r2 > beta2 * m[3] && r2 * r2 * r1 >= m[FLOOR_ROW]) {
                 /* far: the expansion (Barill et al. 2018) */
-                const float inv = 1.0f / sqrt1(r2);
+                const float inv = 1.0f / r1;
                 const float inv3 = inv * inv * inv;
                 const float3 n = (float3)(m[4], m[5], m[6]);
                 const float3 mr = (float3)(m[7] * r.x + m[8] * r.y + m[9] * r.z,

@@ -24,7 +24,10 @@
  * and its box: the centre p, R^2, N, M = B - N p^T, and with ORDER=2
  * H_ijk = sum a_i Q_jk - B_ij p_k - B_ik p_j + N_i p_j p_k contracted as
  * winding.cl reads it (g = -3/2 (2 u + t), u_k = H_iik, t_i = H_ijj; then
- * 15/2 H_ijk, the off-diagonal pairs doubled).
+ * 15/2 H_ijk, the off-diagonal pairs doubled), and last the far floor
+ * A R^3 / far_divisor, A the node's triangle area (winding.cl: a node is far
+ * only where r^5 is at least that; far_divisor = 4 pi times the error allowed
+ * per node, winding_moments.py NODE_ERROR).
  *
  * Defines: ORDER (1 or 2, default 2); WIDE_OUT (0 or 1): the rows go into
  * wide records (records, ROWS, WIDTH), each node to the lane that holds it
@@ -43,10 +46,10 @@
 #endif
 #if ORDER == 2
 #define TERMS 34
-#define ROWS 37
+#define ROWS 38
 #elif ORDER == 1
 #define TERMS 16
-#define ROWS 16
+#define ROWS 17
 #else
 #error "ORDER must be 1 or 2"
 #endif
@@ -131,7 +134,8 @@ inline int pair_of(int j, int k) {
 
 /* Node `node`'s ROWS floats, from its sums s and its box, at o[r * stride]. */
 inline void write_rows(__global const float *nodes, int node, const double *s,
-                       const double *shift, double scale, __global float *o, int stride) {
+                       const double *shift, double scale, double far_divisor,
+                       __global float *o, int stride) {
     double lo[3], hi[3], p[3];
     for (int j = 0; j < 3; ++j) {
         lo[j] = ((double)nodes[8 * node + j] - shift[j]) * scale;
@@ -146,6 +150,7 @@ inline void write_rows(__global const float *nodes, int node, const double *s,
     }
     for (int j = 0; j < 3; ++j) o[j * stride] = (float)(p[j] / scale + shift[j]);
     o[3 * stride] = (float)r2;
+    o[(ROWS - 1) * stride] = (float)(area * r2 * sqrt(r2) / far_divisor);
     for (int i = 0; i < 3; ++i) {
         o[(4 + i) * stride] = (float)s[4 + i];
         for (int j = 0; j < 3; ++j)
@@ -170,21 +175,21 @@ inline void write_rows(__global const float *nodes, int node, const double *s,
  * with WIDE_OUT the lane of the record that holds it (slot[node] - 1; 0: no
  * lane holds it, as a record's own binary node). */
 inline void store_rows(__global const float *nodes, __global const int *slot, int node,
-                       const double *s, const double *shift, double scale,
+                       const double *s, const double *shift, double scale, double far_divisor,
                        __global float *out) {
 #if WIDE_OUT
     const int item = slot[node] - 1;
     if (item < 0) return;
-    write_rows(nodes, node, s, shift, scale,
+    write_rows(nodes, node, s, shift, scale, far_divisor,
                out + (long)(item / WIDTH) * ROWS * WIDTH + item % WIDTH, WIDTH);
 #else
-    write_rows(nodes, node, s, shift, scale, out + (long)ROWS * node, 1);
+    write_rows(nodes, node, s, shift, scale, far_divisor, out + (long)ROWS * node, 1);
 #endif
 }
 
 /* WIDE_OUT: where each node's rows go (slot[node] = its lane's index + 1, the
- * slots zeroed before), and the rows of the empty lanes: zeros, and R^2 = -1
- * so that winding.cl takes them for far and adds nothing. */
+ * slots zeroed before), and the rows of the empty lanes: zeros, and R^2 and
+ * the far floor -1, so that winding.cl takes them for far and adds nothing. */
 __kernel void lane_slots(__global const int *lanes, __global int *slot, __global float *out,
                          const int count, const int per_item) {
     const int gid = get_global_id(0);
@@ -195,7 +200,7 @@ __kernel void lane_slots(__global const int *lanes, __global int *slot, __global
             slot[node] = item + 1;
         } else {
             __global float *o = out + (long)(item / WIDTH) * ROWS * WIDTH + item % WIDTH;
-            for (int r = 0; r < ROWS; ++r) o[r * WIDTH] = r == 3 ? -1.0f : 0.0f;
+            for (int r = 0; r < ROWS; ++r) o[r * WIDTH] = r == 3 || r == ROWS - 1 ? -1.0f : 0.0f;
         }
     }
 }
@@ -213,7 +218,7 @@ __kernel void moments(__global const float *vertices, __global const uint *faces
                       const int leaf_first, const int num_leaves, __global double *sums,
                       __global const int *slot, __global float *out, const double sx,
                       const double sy, const double sz, const double scale,
-                      const int per_item) {
+                      const double far_divisor, const int per_item) {
     const int gid = get_global_id(0);
     const double shift[3] = {sx, sy, sz};
     const int last = chunk_last(gid, per_item, num_leaves);
@@ -223,7 +228,7 @@ __kernel void moments(__global const float *vertices, __global const uint *faces
         double s[TERMS], o[TERMS];
         leaf_sums(vertices, faces, prim_order, words[8 * at + 3], -words[8 * at + 7], shift,
                   scale, s);
-        store_rows(nodes, slot, at, s, shift, scale, out);
+        store_rows(nodes, slot, at, s, shift, scale, far_divisor, out);
         for (;;) {
             const int p = parent[at];
             if (p < 0) break;
@@ -244,7 +249,7 @@ __kernel void moments(__global const float *vertices, __global const uint *faces
                 for (int i = 0; i < TERMS; ++i) s[i] = o[i] + s[i];
             }
             for (int i = 0; i < TERMS; ++i) sums[(long)TERMS * p + i] = s[i];
-            store_rows(nodes, slot, p, s, shift, scale, out);
+            store_rows(nodes, slot, p, s, shift, scale, far_divisor, out);
             at = p;
         }
     }

@@ -23,7 +23,8 @@ How it is computed: near a point the triangles' solid angles are summed
 exactly (Van Oosterom & Strackee 1983) in float32; a node of the tree farther
 than ``beta`` times its radius from the point is replaced by the expansion of
 its triangles' solid angles about their area-weighted centroid up to the
-second order (Barill et al. 2018; :mod:`lbvh.queries.winding_moments` makes the
+second order, where it is also far enough for its area
+(:data:`lbvh.queries.winding_moments.NODE_ERROR`) (Barill et al. 2018; :mod:`lbvh.queries.winding_moments` makes the
 moments once per tree, in float64 on the device, and the :class:`lbvh.BVH` keeps
 them; :func:`expansion_numpy` is the twin of the far-node term). ``beta = 1.3`` (the
 default) keeps ``|w - w_exact|`` within
@@ -235,7 +236,7 @@ def winding_numbers_numpy(vertices: np.ndarray, faces: np.ndarray, points: np.nd
 
 def expansion_numpy(moments: np.ndarray, points: np.ndarray) -> np.ndarray:
     """The twin of kernels/winding.cl's far-node term: ``float64 (K, N)``, the winding
-    number that the expansion of each node of ``moments`` (``(K, 16)`` or ``(K, 37)``
+    number that the expansion of each node of ``moments`` (``(K, 17)`` or ``(K, 38)``
     rows of :func:`lbvh.queries.winding_moments.node_moments`, its order read from the
     row length) gives at each point, ``(N, 3)``; in float64 from the float32 moments."""
     m = np.asarray(moments, np.float64)

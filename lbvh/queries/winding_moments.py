@@ -38,14 +38,29 @@ from .wide import Wide
 
 KERNEL_FILE = "winding_moments.cl"
 
-__all__ = ["DEFAULT_ORDER", "ROWS_ORDER1", "ROWS_ORDER2", "node_moments", "wide_moments",
-           "read_lanes", "make_moments", "device_can_make", "kernel_defines", "winding_scale",
-           "scale_of_box"]
+__all__ = ["DEFAULT_ORDER", "ROWS_ORDER1", "ROWS_ORDER2", "NODE_ERROR", "node_moments",
+           "wide_moments", "read_lanes", "make_moments", "device_can_make", "kernel_defines",
+           "winding_scale", "scale_of_box"]
 
 #: Floats per node of the first-order moments (:func:`node_moments` with ``order=1``).
-ROWS_ORDER1 = 16
+ROWS_ORDER1 = 17
 #: Floats per node with the second-order terms (``order=2``, the default).
-ROWS_ORDER2 = 37
+ROWS_ORDER2 = 38
+#: The error allowed per far node, estimated as ``A / (4 pi r^2) * (R / r)^3`` (``A``
+#: the node's triangle area, ``r`` the point's distance to ``p``): its solid angle's
+#: bound times the relative error of the second-order expansion, ``(R / r)^3`` (Barill
+#: et al. 2018). The last row of each node holds ``A R^3 / (4 pi NODE_ERROR)``, and
+#: kernels/winding.cl expands a node only where ``r^5`` is at least that as well as
+#: ``r > beta R``: a node of much area for its radius (a tube, seen along its axis from
+#: beyond an open end, 1.3 radii from its centre, was off by 0.06 alone: Sponza's beams)
+#: is opened instead. On a smooth patch (a node's area about twice its radius squared)
+#: the floor is about ``1.3 R``, where ``beta`` is already. Measured on 1M points per
+#: bench scene (bench/README.md): the largest error 0.062 -> 0.048 on Sponza, 0.042 ->
+#: 0.037 on terrain-1m, for about 6% more time on Sponza and none measurable elsewhere;
+#: 0.03 gave 0.051 on Sponza and 1.2x the time on terrain-1m.
+NODE_ERROR = 0.04
+#: The floor's divisor, ``4 pi NODE_ERROR`` (one float64 for the kernel and the twin).
+FAR_DIVISOR = 4.0 * np.pi * NODE_ERROR
 #: The order of the expansion of far nodes (Barill et al. 2018 use 2).
 DEFAULT_ORDER = 2
 
@@ -135,7 +150,7 @@ def scale_of_box(lower: np.ndarray, upper: np.ndarray) -> float:
 def node_moments(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices: np.ndarray,
                  faces: np.ndarray, order: int = DEFAULT_ORDER,
                  scale: float | None = None) -> np.ndarray:
-    """``float32 (num_nodes, 37)`` (``order=2``) or ``(num_nodes, 16)`` (``order=1``):
+    """``float32 (num_nodes, 38)`` (``order=2``) or ``(num_nodes, 17)`` (``order=1``):
     what kernels/winding.cl reads of each node.
 
     ``[0:3]`` the area-weighted centroid ``p`` of the node's triangles (the box's
@@ -146,7 +161,8 @@ def node_moments(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices:
     ``(x - p)(x - p)^T`` over triangle ``t``, in the form the kernel contracts:
     ``[16:19]`` ``g = -3/2 (2 u + t)``, ``u_k = H_iik``, ``t_i = H_ijj``; ``[19:37]``
     ``15/2 H_ijk`` for ``i`` = x, y, z, each over the pairs xx, yy, zz, xy, xz, yz, the
-    last three doubled. Sums in float64 about the centre of the mesh's box (so that
+    last three doubled. The last row (``[16]``, or ``[37]`` with ``order=2``): the far
+    floor ``A R^3 /`` :data:`FAR_DIVISOR`, ``A`` the sum of the triangles' areas. Sums in float64 about the centre of the mesh's box (so that
     meshes far from the origin lose no digits): leaves over their slots, internal
     nodes from their children level by level, then shifted to ``p`` and rounded once.
 
@@ -198,7 +214,8 @@ def node_moments(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices:
     out = np.empty((ROWS_ORDER1 if order == 1 else ROWS_ORDER2, n), np.float32)
     far = np.maximum(np.abs(upper - centre), np.abs(centre - lower))
     out[0:3] = centre / scale + shift[:, None]
-    out[3] = (far * far).sum(axis=0)
+    out[3] = r2 = (far * far).sum(axis=0)
+    out[-1] = area * r2 * np.sqrt(r2) / FAR_DIVISOR
     big_n = cols[4:7]
     out[4:7] = big_n
     b = cols[7:16].reshape(3, 3, n)        # B_ij = sum a_i c_j
@@ -222,16 +239,17 @@ def node_moments(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices:
 
 def wide_moments(moments: np.ndarray, lanes: np.ndarray) -> np.ndarray:
     """``float32 (records, rows, width)``: what kernels/winding.cl reads of each wide
-    record (WIDE=1), ``rows`` those of ``moments`` (37 or 16): row ``k`` holds
+    record (WIDE=1), ``rows`` those of ``moments`` (38 or 17): row ``k`` holds
     ``moments[:, k]`` (:func:`node_moments`) of each lane's binary node (``lanes``,
     ``int32 (records, width)``, -1 for an empty lane, as :class:`lbvh.queries.wide.Wide`
-    keeps them); an empty lane has zeros and ``R^2 = -1``, so the kernel takes it for
-    far and adds nothing."""
+    keeps them); an empty lane has zeros and ``R^2`` and the far floor ``-1``, so the
+    kernel takes it for far and adds nothing."""
     lanes = np.asarray(lanes)
     out = np.asarray(moments, np.float32)[np.maximum(lanes, 0)].transpose(0, 2, 1).copy()
     empty = np.broadcast_to((lanes < 0)[:, None, :], out.shape)
     out[empty] = 0.0
     out[:, 3][lanes < 0] = -1.0
+    out[:, -1][lanes < 0] = -1.0
     return out
 
 
@@ -268,7 +286,7 @@ def make_moments(ctx: dev.Context, tree: Tree, mesh: Mesh, wide: Wide | None,
                  order: int = DEFAULT_ORDER) -> cl.Buffer:
     """The moments on the device: ``float32 (records, rows, width)`` in the rows of
     ``wide``'s records where they are packed (:func:`wide_moments`), else ``float32
-    (num_nodes, rows)`` (:func:`node_moments`); ``rows`` 37 (``order=2``) or 16.
+    (num_nodes, rows)`` (:func:`node_moments`); ``rows`` 38 (``order=2``) or 17.
 
     Made by kernels/winding_moments.cl where :func:`device_can_make`, else by the
     twins on the host. The caller holds ``ctx.lock`` and owns the buffer returned.
@@ -309,7 +327,8 @@ def make_moments(ctx: dev.Context, tree: Tree, mesh: Mesh, wide: Wide | None,
                 tree.prim_order, tree.nodes, tree.parent, arrivals,
                 leaf_list if leaf_list is not None else arrivals, leaf_list is not None,
                 leaf_first, num_leaves, sums, slot if into_records else arrivals, out, sx, sy,
-                sz, scale, walks.per_item, defines=defines, wait_for=events)
+                sz, scale, np.float64(FAR_DIVISOR), walks.per_item, defines=defines,
+                wait_for=events)
         ctx.queue.finish()
     except BaseException:
         mem.free(out)

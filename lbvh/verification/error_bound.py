@@ -101,9 +101,12 @@ def scene_closest_distance_bound(vertices: np.ndarray, points: np.ndarray) -> np
 #: default ``beta = 1.3`` with the second-order expansion: ``|w - w_exact| <=
 #: WINDING_BOUND``. Not a proof but a measured bound with room: the largest error over
 #: the tests' meshes (a faceted sphere, an icosphere, a box, the teapot, a soup; 1,500
-#: points each, the default and the SAH tree) is 0.023, and over 400 points of each of
-#: the bench's scenes (the bunny, Sponza, a 1M-triangle terrain) 0.023; the error is that
-#: of the expansion of the far nodes (Barill et al. 2018), about ``(1 / beta)^3`` of their
+#: points each, the default and the SAH tree) is 0.023, and over 1,048,576 points in the
+#: box grown by a fifth of each of the bench's scenes, against the walk at ``beta = 4``
+#: (itself within 0.002), 0.031 on the bunny, 0.048 on Sponza and 0.037 on a
+#: 1M-triangle terrain (0.031, 0.062 and 0.042 before far nodes had to be far for their
+#: area too: :data:`lbvh.queries.winding_moments.NODE_ERROR`). The error is that of the
+#: expansion of the far nodes (Barill et al. 2018), about ``(1 / beta)^3`` of their
 #: contribution, and the float32 sums add 1e-5. On a closed mesh ``w_exact`` is 0 or 1
 #: off the surface, so ``contains`` (``w > 1/2``) is exact wherever the float32 solid
 #: angles are, which the tests check down to points :data:`INSIDE_TOLERANCE` (relative
