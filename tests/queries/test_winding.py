@@ -35,22 +35,27 @@ def closed_meshes():
             "box": (np.float32(box.vertices), np.uint32(box.faces))}
 
 
+def _node_triangles(bvh, node) -> list[int]:
+    """The triangles of ``node``'s subtree, by walking it."""
+    prims = np.asarray(bvh.prim_order)
+    stack, tris = [int(node)], []
+    while stack:
+        x = stack.pop()
+        if bvh.is_leaf[x]:
+            first, count = bvh.prim_range[x]
+            tris.extend(prims[first:first + count])
+        else:
+            stack.extend(bvh.children[x])
+    return tris
+
+
 def test_moments_sum_the_triangles_of_each_node():
     v, f = meshes.soup(500, 3, 0.05, spread="normal")
     bvh = lbvh.build(v, f, collapse=True)
     m = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f).astype(np.float64)
     rng = np.random.default_rng(0)
-    prims = np.asarray(bvh.prim_order)
     for node in [bvh.root, *rng.integers(0, bvh.num_nodes, 20)]:
-        # the node's triangles, by walking its subtree
-        stack, tris = [int(node)], []
-        while stack:
-            x = stack.pop()
-            if bvh.is_leaf[x]:
-                first, count = bvh.prim_range[x]
-                tris.extend(prims[first:first + count])
-            else:
-                stack.extend(bvh.children[x])
+        tris = _node_triangles(bvh, node)
         t = _triangle_terms(v, f[tris])
         p = t[:, 1:4].sum(0) / t[:, 0].sum()
         n = t[:, 4:7].sum(0)
@@ -78,14 +83,7 @@ def test_moments_sum_the_triangles_of_each_node():
     areas = np.linalg.norm(np.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0]),
                            axis=1).astype(np.float64) / 2
     for node in [bvh.root, *rng.integers(0, bvh.num_nodes, 20)]:
-        stack, tris = [int(node)], []
-        while stack:
-            x = stack.pop()
-            if bvh.is_leaf[x]:
-                first, count = bvh.prim_range[x]
-                tris.extend(prims[first:first + count])
-            else:
-                stack.extend(bvh.children[x])
+        tris = _node_triangles(bvh, node)
         floor = areas[tris].sum() * m[node, 3] ** 1.5 / (4 * np.pi * wm.NODE_ERROR)
         assert np.isclose(m[node, -1], floor, rtol=1e-5)
     # the first-order moments are the same numbers, without the second-order rows
