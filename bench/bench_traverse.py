@@ -914,6 +914,70 @@ def goal(rows: list[dict], scenes: list[dict]) -> list[dict]:
     return out
 
 
+def gap(rows: list[dict], entries: list[dict]) -> list[dict]:
+    """Where the best tree's gap to each of :data:`GOAL_PEERS` lies, per scene and query,
+    from the rates of this run: ``gap`` = peer / ours through the API, the product of
+    ``host`` (our kernel-only rate over the API's: the host work of a call), ``tree``
+    (the fastest kernel-only rate of any tree built here, whatever its build time, over
+    the best tree's: what tree quality alone would still give) and ``walk`` (the peer
+    over that fastest kernel: what is left with the best tree we build and no host
+    work, the cost of our traversal itself). Rows only where the kernel-only and the
+    peer's rates were measured."""
+    by = {(r["scene"], r["query"], r["tracer"]): r for r in rows}
+    out = []
+    for e in entries:
+        if e["role"] != "best":
+            continue
+        for q in QUERIES:
+            api, kernel = by.get((e["scene"], q, e["tree"])), by.get((e["scene"], q, f"{e['tree']} (kernel only)"))
+            ours = [r for r in rows if r["scene"] == e["scene"] and r["query"] == q
+                    and r["family"] == "kernel" and r["rays_per_second"]]
+            if api is None or kernel is None or not ours or not api["rays_per_second"] \
+                    or not kernel["rays_per_second"]:
+                continue
+            top = max(ours, key=lambda r: r["rays_per_second"])
+            for peer in GOAL_PEERS:
+                theirs = by.get((e["scene"], q, peer))
+                if theirs is None or not theirs["rays_per_second"]:
+                    continue
+                rate = {"api": api["rays_per_second"], "kernel": kernel["rays_per_second"],
+                        "top": top["rays_per_second"], "peer": theirs["rays_per_second"]}
+                out.append({"scene": e["scene"], "query": q, "tree": e["tree"], "peer": peer,
+                            "top_tree": top["tracer"].removesuffix(" (kernel only)"),
+                            "top_nodes_per_ray": top["nodes_per_ray"],
+                            "top_tris_per_ray": top["tris_per_ray"], "rays_per_second": rate,
+                            "gap": rate["peer"] / rate["api"],
+                            "host": rate["kernel"] / rate["api"],
+                            "tree_quality": rate["top"] / rate["kernel"],
+                            "walk": rate["peer"] / rate["top"]})
+    return out
+
+
+def gap_markdown(entries: list[dict]) -> list[str]:
+    """The section of :func:`gap`: one row per scene, query and peer."""
+    if not entries:
+        return []
+    lines = ["", "## Where the gap is (the best tree, from this run's rates)", "",
+             "`gap` = peer / ours through the API = `host` x `tree` x `walk`: `host` our "
+             "kernel-only rate over the API's (the host work of a call); `tree` the fastest "
+             "kernel-only rate of any tree built here (`top tree`, whatever its build time) "
+             "over the best tree's (what tree quality alone still gives); `walk` the peer over "
+             "that fastest kernel (what is left with our best tree and no host work: the "
+             "traversal's own cost, and any edge of the peer's own tree over ours). Above 1: "
+             "ours slower by that factor; ratios of medians, so noisy as the rates are.", "",
+             "| scene | query | best tree | peer | peer Mrays/s | ours Mrays/s | gap | host "
+             "| tree | walk | top tree | its nodes/ray, tris/ray |",
+             "|---|---|---|---|---:|---:|---:|---:|---:|---:|---|---|"]
+    for g in entries:
+        r = g["rays_per_second"]
+        lines.append(f"| {g['scene']} | {g['query']} | {g['tree']} | {g['peer']} "
+                     f"| {fmt_mrays(r['peer'])} | {fmt_mrays(r['api'])} | {g['gap']:.2f} "
+                     f"| {g['host']:.2f} | {g['tree_quality']:.2f} | {g['walk']:.2f} "
+                     f"| {g['top_tree']} | {fmt_or_dash(g['top_nodes_per_ray'], '.1f')}, "
+                     f"{fmt_or_dash(g['top_tris_per_ray'], '.1f')} |")
+    return lines
+
+
 def goal_verdict(entries: list[dict]) -> dict[str, dict]:
     """Per query: MET where every judged entry is MET, NOT MEASURED where a peer is
     missing, else NOT MET; with the entries that fall short, in words."""
@@ -1028,6 +1092,7 @@ def markdown(report: dict) -> str:
     for skipped in report["skipped"]:
         lines.append(f"- {skipped['scene']}: skipped ({skipped['reason']})")
     lines += goal_markdown(report["goal"], report["goal_verdict"])
+    lines += gap_markdown(report.get("gap", []))
     lines += ["", "## Closest hit: ours against the peers (same run)", "",
               "| scene | ours | Mrays/s | nodes/ray | tris/ray | spread | embree-1t | embree-2t "
               "| ours / embree-2t | open3d | ours / open3d | warp | ours / warp |",
@@ -1278,6 +1343,7 @@ def main(argv: list[str] | None = None) -> dict:
                                   default=None)},
     }
     report["goal_verdict"] = goal_verdict(report["goal"])
+    report["gap"] = gap(rows, report["goal"])
     write_outputs(report, out, started)
     return report
 

@@ -279,6 +279,33 @@ def test_goal_judges_from_the_numbers():
     assert verdict["status"] == "NOT MEASURED" and verdict["why"] == [f"{bench.OPEN3D} not in this run"]
 
 
+def test_gap_splits_the_ratio_into_host_tree_and_walk():
+    """The gap table on made-up rates: gap = host x tree x walk, the top tree the fastest
+    kernel of any build time, rows only where the kernel and the peer were measured."""
+    def row(tracer, family, mrays):
+        return {"scene": "s", "query": "closest", "tracer": tracer, "family": family,
+                "rays_per_second": mrays * 1e6, "nodes_per_ray": 9.0, "tris_per_ray": 2.0}
+    best = bench.SMALL_TREELETS
+    rows = [row(best, "lbvh", 4.0), row(f"{best} (kernel only)", "kernel", 5.0),
+            row(f"{bench.TREELETS} (kernel only)", "kernel", 6.0),
+            row(f"{bench.OURS} (kernel only)", "kernel", 3.0),
+            row("embree-2t", "embree", 9.0), row(bench.OPEN3D, "open3d", 3.0)]
+    entries = [{"scene": "s", "role": "best", "tree": best},
+               {"scene": "s", "role": "default", "tree": bench.OURS}]
+    out = {g["peer"]: g for g in bench.gap(rows, entries)}
+    assert set(out) == {"embree-2t", bench.OPEN3D}
+    e = out["embree-2t"]
+    assert e["top_tree"] == bench.TREELETS
+    assert (e["gap"], e["host"], e["tree_quality"], e["walk"]) == pytest.approx((2.25, 1.25, 1.2, 1.5))
+    assert e["gap"] == pytest.approx(e["host"] * e["tree_quality"] * e["walk"])
+    assert out[bench.OPEN3D]["gap"] == pytest.approx(0.75)
+    text = "\n".join(bench.gap_markdown(list(out.values())))
+    assert "## Where the gap is" in text and "| s | closest | " in text
+    # no kernel-only row of the best tree: nothing to split
+    assert bench.gap([r for r in rows if r["tracer"] != f"{best} (kernel only)"], entries) == []
+    assert bench.gap_markdown([]) == []
+
+
 def test_quick_markdown_has_the_tables_and_targets(quick):
     out, report = quick
     text = (out / "bench_traverse.md").read_text()
@@ -288,7 +315,7 @@ def test_quick_markdown_has_the_tables_and_targets(quick):
     assert "## The price of watertightness" in text
     assert text.count(f"| {report['scenes'][0]['name']} | ") == (
         len(report["rows"]) + len(report["closest_ratios"]) + len(report["watertight_price"])
-        + len(report["goal"]) + len(report["scenes"][0]["small_batches"]))
+        + len(report["goal"]) + len(report["scenes"][0]["small_batches"]) + len(report["gap"]))
     assert "## Small batches" in text
     verdict = [line for line in text.splitlines() if line.startswith("**Verdict, closest hit: ")]
     assert len(verdict) == 1 and report["goal_verdict"]["closest"]["status"] + "**" in verdict[0]
