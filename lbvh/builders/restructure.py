@@ -225,7 +225,8 @@ class _Treelets:
     def cost_only(self, x: int) -> None:
         """Kernel cost_only: x's cost from its children's, as a two-leaf treelet's."""
         a, b = self.children(x)
-        self.cost[x] = self.c_node * self.area(self.lo[x], self.hi[x]) + (self.cost[a] + self.cost[b])
+        below = self.cost[a] + self.cost[b]
+        self.cost[x] = self.c_node * self.area(self.lo[x], self.hi[x]) + below
 
     def run(self, root: int, min_leaves: int = 0) -> None:
         """One round: every internal node after both of its subtrees (post order);

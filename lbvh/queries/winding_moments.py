@@ -162,8 +162,9 @@ def node_moments(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices:
     ``[16:19]`` ``g = -3/2 (2 u + t)``, ``u_k = H_iik``, ``t_i = H_ijj``; ``[19:37]``
     ``15/2 H_ijk`` for ``i`` = x, y, z, each over the pairs xx, yy, zz, xy, xz, yz, the
     last three doubled. The last row (``[16]``, or ``[37]`` with ``order=2``): the far
-    floor ``A R^3 /`` :data:`FAR_DIVISOR`, ``A`` the sum of the triangles' areas. Sums in float64 about the centre of the mesh's box (so that
-    meshes far from the origin lose no digits): leaves over their slots, internal
+    floor ``A R^3 /`` :data:`FAR_DIVISOR`, ``A`` the sum of the triangles' areas. Sums
+    in float64 about the centre of the mesh's box (so that meshes far from the origin
+    lose no digits): leaves over their slots, internal
     nodes from their children level by level, then shifted to ``p`` and rounded once.
 
     Every length is multiplied by ``scale`` (default :func:`winding_scale` of the
