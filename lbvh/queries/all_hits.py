@@ -222,8 +222,7 @@ def assemble(rays: Rays, total: np.ndarray, flags: np.ndarray, kept: tuple[np.nd
         within = rank < cap if cap is not None else np.ones(len(rank), bool)
         cols = [c[keep][within] for c in cols]
         counts = np.bincount(ray[keep][within], minlength=len(rays))
-    offsets = np.zeros(len(rays) + 1, np.int64)
-    np.cumsum(counts, out=offsets[1:])
+    offsets = _offsets(counts)
     overflow = (flags & (FLAG_OVERFLOW | FLAG_VISIT_LIMIT)) != 0
     invalid = rays.invalid if rays.invalid is not None else np.zeros(len(rays), bool)
     return (offsets, cols[0], cols[1], cols[2], cols[3], total.astype(np.int64), overflow,
@@ -332,8 +331,7 @@ def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, dep
             counts, part_flags, _, cols = pass_.run(part, np.arange(m + 1, dtype=np.int64) * slots,
                                                     slots_only=cap < 0 or cap > slots)
             keep = counts.astype(np.int64) if cap < 0 else np.minimum(counts, cap)
-            offsets = np.zeros(m + 1, np.int64)
-            np.cumsum(keep, out=offsets[1:])
+            offsets = _offsets(keep)
             out = tuple(np.empty(int(offsets[-1]), t) for t in dtypes)
             # the rays whose hits all fit their slots: copied from them
             done = keep <= slots
@@ -346,8 +344,7 @@ def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, dep
             again = np.flatnonzero(~done)
             if len(again):
                 need = keep[again]
-                sub_offsets = np.zeros(len(again) + 1, np.int64)
-                np.cumsum(need, out=sub_offsets[1:])
+                sub_offsets = _offsets(need)
                 _, sub_flags, _, sub_cols = pass_.run(_pick(part, again), sub_offsets)
                 part_flags[again] |= sub_flags
                 rank = np.arange(int(sub_offsets[-1])) - np.repeat(sub_offsets[:-1], need)
@@ -389,6 +386,13 @@ def first_slots(pass_: "_Pass", rays: Rays, cap: int) -> int:
         need = int(np.ceil(np.quantile(counts, SLOT_QUANTILE)))
         slots = int(np.clip(need, *SLOT_RANGE))
     return slots if cap < 0 else min(slots, cap)
+
+
+def _offsets(counts: np.ndarray) -> np.ndarray:
+    """``int64 (len(counts) + 1,)``: where each ray's run of hits starts, and the end."""
+    offsets = np.zeros(len(counts) + 1, np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    return offsets
 
 
 def _pick(rays: Rays, index: np.ndarray) -> Rays:

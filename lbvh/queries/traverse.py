@@ -543,6 +543,12 @@ def _trace_rays(target: QueryTarget, rays: Rays, any_hit: bool, triangle_test: s
                 ctx.memory.free(order)
     finally:
         ctx.memory.free(*bufs.values())
+    return _hits_of(planes, flag, count)
+
+
+def _hits_of(planes: np.ndarray, flag: np.ndarray, count: np.ndarray | None = None) -> Hits:
+    """:class:`Hits` from the kernel's four planes (t, u, v, prim), its flags and, with
+    counters, its ``(nodes, triangles)`` per ray."""
     overflow = flag != 0
     return Hits(t=planes[0], prim=planes[3].view(np.int32), u=planes[1], v=planes[2],
                 overflow=overflow, overflow_count=int(overflow.sum()),
@@ -587,10 +593,7 @@ def _trace_in_place(target: QueryTarget, rays: Rays, any_hit: bool, triangle_tes
             memory.free(order)
         for b in bufs:
             b.release()
-    overflow = flag != 0
-    return Hits(t=planes[0], prim=planes[3].view(np.int32), u=planes[1], v=planes[2],
-                overflow=overflow, overflow_count=int(overflow.sum()),
-                nodes_visited=None, tris_tested=None)
+    return _hits_of(planes, flag)
 
 
 # -- rays in pyopencl arrays ----------------------------------------------------
