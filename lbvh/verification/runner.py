@@ -170,11 +170,12 @@ def run(case_names: Iterable[str], builders: Iterable[str], device: Any = None,
 
 def warm_up(builders: list[str], device: Any = None) -> None:
     """Build and trace two triangles with each builder, so that the kernels are
-    compiled before anything is timed."""
+    compiled before anything is timed (through :func:`build_with`, as the cases are:
+    ``"sah-rays"`` needs its sample made)."""
 
     v = np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
     f = np.uint32([[0, 1, 2], [0, 1, 3]])
     for builder in builders:
-        bvh = build(v, f, device=device, **BUILDERS[builder])
+        bvh = build_with(builder, v, f, device=device)
         bvh.intersect(v[:1] - 1, np.float32([[1, 1, 1]]))
         bvh.occluded(v[:1] - 1, np.float32([[1, 1, 1]]))

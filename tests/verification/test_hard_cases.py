@@ -322,6 +322,20 @@ def test_check_command_prints_every_case_and_builder(capsys):
     assert "sah                3 passed, 0 failed" in out
 
 
+def test_check_command_runs_every_builder_by_default(capsys):
+    """Without --builders every builder runs, the ray-sampled SAH included (its
+    warm-up once passed the builder's option table straight to lbvh.build and
+    failed on "sah-rays" before any case ran)."""
+    from lbvh.cli import main
+
+    code = main(["check", "--cases", "1_triangle"])
+    out, err = capsys.readouterr()
+    assert code == 0, out + err
+    rows = [line.split() for line in out.splitlines() if line.startswith("1_triangle ")]
+    assert sorted(row[1] for row in rows) == sorted(runner.BUILDERS)
+    assert all(row[2] == "passed" for row in rows)
+
+
 def test_check_exit_status_follows_the_rules():
     ok = rules.Outcome("c", "lbvh30", 1, 10, 5, depth=3, stack=32, tree_stack=32)
     assert ok.passed and check.exit_status([ok]) == 0
