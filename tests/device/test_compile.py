@@ -40,7 +40,11 @@ def test_includes_are_expanded_and_options_hold_no_path(sources, ctx):
     ctx._programs.pop(("good.cl", ()), None)
     prog = ctx._compile("good.cl", {})
     assert prog.get_info(cl.program_info.KERNEL_NAMES) == "k"
-    assert ctx.build_log("good.cl") == ""
+    # no diagnostic: PoCL's log of a clean source is empty; other compilers (Intel's
+    # CPU runtime) write their progress there, "Compilation started" and the like
+    log = ctx.build_log("good.cl")
+    assert not any(word in line.lower() for line in log.splitlines()
+                   for word in ("warning", "error")), log
 
 
 def test_a_compile_error_carries_the_log_file_and_options(sources, ctx):
