@@ -280,11 +280,8 @@ __kernel void traverse(__global const float4 *nodes, __global const float *recor
                     const intw ys = ((__global const intw *)(record_words + 8 * WIDTH * x))[7];
                     const uint all = lane_bits(hit.v);
                     const uint leaves = all & lane_bits(ys < (intw)(0));
-                    for (uint m = leaves | (all & ~leaves) << 8; m != 0u; m &= m - 1u) {
-                        const uint b = m & (0u - m);
-                        lane[n++] = ((b & 0xf0f0u) != 0u ? 4 : 0) | ((b & 0xccccu) != 0u ? 2 : 0) |
-                                    ((b & 0xaaaau) != 0u ? 1 : 0);
-                    }
+                    for (uint m = leaves | (all & ~leaves) << 8; m != 0u; m &= m - 1u)
+                        lane[n++] = lowest_bit16(m) & (WIDTH - 1);
                 }
 #else
                 for (uint m = lane_bits(hit.v); m != 0u; m &= m - 1u) {

@@ -62,11 +62,31 @@ inline uint lane_bits(intw v) {
 #endif
 }
 
-/* The index of the lowest set bit of a lane mask m != 0, by bit tests (PoCL
- * calls clz out of line; OpenCL 1.2 has no ctz). */
+/* The index of the lowest set bit of a mask m != 0 of up to 16 bits: by
+ * clang's count of trailing zeros (one instruction) where the host says the
+ * compiler is clang (CLANG_CTZ, as CLANG_MOVMSK: PoCL), else by bit tests
+ * (PoCL calls clz out of line; OpenCL 1.2 has no ctz). */
+#ifndef CLANG_CTZ
+#define CLANG_CTZ 0
+#endif
+inline int lowest_bit16(uint m) {
+#if CLANG_CTZ && defined(__clang__)
+    return __builtin_ctz(m);
+#else
+    const uint b = m & (0u - m);
+    return ((b & 0xff00u) != 0u ? 8 : 0) | ((b & 0xf0f0u) != 0u ? 4 : 0) |
+           ((b & 0xccccu) != 0u ? 2 : 0) | ((b & 0xaaaau) != 0u ? 1 : 0);
+#endif
+}
+
+/* The lane of the lowest set bit of a lane mask m != 0. */
 inline int lowest_lane(uint m) {
+#if CLANG_CTZ && defined(__clang__)
+    return __builtin_ctz(m);
+#else
     const uint b = m & (0u - m);
     return ((b & 0xf0u) != 0u ? 4 : 0) | ((b & 0xccu) != 0u ? 2 : 0) | ((b & 0xaau) != 0u ? 1 : 0);
+#endif
 }
 
 /* max_keep and min_keep lane by lane (NaN in x keeps m). */

@@ -80,7 +80,7 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     division (it sets traverse.cl's ``SLAB_PAD``); ``compiler_is_clang``:
     whether the platform compiles with clang (PoCL: refit.cl's
     ``CLANG_PREFETCH``, winding.cl's ``INLINE_SQRT``, traverse.cl's
-    ``CLANG_MOVMSK``). ``None`` (the default) lists both values: every device of
+    ``CLANG_MOVMSK`` and ``CLANG_CTZ``). ``None`` (the default) lists both values: every device of
     that kind. :func:`variants_for` gives one context's list.
     """
     ctxs = [_fake_ctx(is_cpu, d, c) for d in _choices(exact_divide)

@@ -131,11 +131,13 @@ def test_bad_width_is_refused():
         _fresh("lbvh30").wide_records(width=3)
 
 
+@pytest.mark.parametrize("define", ["CLANG_MOVMSK", "CLANG_CTZ"])
 @pytest.mark.parametrize("any_hit", [False, True], ids=["closest", "any"])
-def test_lane_mask_by_movmsk_answers_as_the_reduction(any_hit):
-    """lane_bits by clang's vmovmskps builtin (CLANG_MOVMSK, set where the compiler is
-    clang; taken where the target has AVX) and by the portable reduction give the same
-    hits bit for bit; where the device's compiler is not clang the define is 0."""
+def test_lane_helpers_by_clang_builtins_answer_as_the_portable_code(any_hit, define):
+    """lane_bits by clang's vmovmskps builtin (CLANG_MOVMSK, taken where the target has
+    AVX) and the lowest set lane by clang's count of trailing zeros (CLANG_CTZ), each
+    set where the compiler is clang, give the same hits bit for bit as the portable
+    bit tests; where the device's compiler is not clang the defines are 0."""
     v, f = lbvh.data.teapot()
     bvh = lbvh.build(v, f)
     rng = np.random.default_rng(3)
@@ -143,13 +145,13 @@ def test_lane_mask_by_movmsk_answers_as_the_reduction(any_hit):
     d = (rng.uniform(-1, 1, (4000, 3)) * [3, 1, 3] + [0, 1.5, 0] - o).astype(np.float32)
     rays = tr.check_rays(o, d)
     got = {}
-    for movmsk in (0, 1):
+    for value in (0, 1):
         out = tr.trace_buffers(bvh, tr.upload_rays(bvh.ctx, rays), any_hit=any_hit,
-                               defines={"CLANG_MOVMSK": movmsk})
-        got[movmsk] = [np.asarray(a).view(np.uint32) for a in tr.read_hits(bvh.ctx, out)]
+                               defines={define: value})
+        got[value] = [np.asarray(a).view(np.uint32) for a in tr.read_hits(bvh.ctx, out)]
     for a, b in zip(got[0], got[1]):
         assert np.array_equal(a, b)
     assert (got[1][3].view(np.int32) >= 0).sum() > 1000   # rays that hit, and rays that miss
     assert (got[1][3].view(np.int32) < 0).sum() > 100
-    assert tr.kernel_defines(bvh.ctx, any_hit, "watertight", False, 8)["CLANG_MOVMSK"] == \
+    assert tr.kernel_defines(bvh.ctx, any_hit, "watertight", False, 8)[define] == \
         int(bvh.ctx.compiler_is_clang)
