@@ -80,14 +80,7 @@ inline int lowest_bit16(uint m) {
 }
 
 /* The lane of the lowest set bit of a lane mask m != 0. */
-inline int lowest_lane(uint m) {
-#if CLANG_CTZ && defined(__clang__)
-    return __builtin_ctz(m);
-#else
-    const uint b = m & (0u - m);
-    return ((b & 0xf0u) != 0u ? 4 : 0) | ((b & 0xccu) != 0u ? 2 : 0) | ((b & 0xaau) != 0u ? 1 : 0);
-#endif
-}
+inline int lowest_lane(uint m) { return lowest_bit16(m); }
 
 /* max_keep and min_keep lane by lane (NaN in x keeps m). */
 inline floatw max_keep_w(floatw x, floatw m) { return x > m ? x : m; }
