@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import functools
+import importlib.util
+import sys
 from pathlib import Path
 
 import pytest
@@ -42,3 +44,16 @@ def shared_mesh(name: str):
 def random_soup(n: int, seed: int = 0, scale: float = 1.0):
     """n small random triangles in a cube: the generic well-behaved case."""
     return soup(n, seed, scale=scale, spread="normal")
+
+
+def load_bench(name: str):
+    """The bench script ``bench/<name>.py`` as a module (bench/ is not a package: the
+    folder goes on ``sys.path``, as the scripts import ``common``; the module is
+    registered under its name, where dataclasses look it up)."""
+    if str(REPO / "bench") not in sys.path:
+        sys.path.insert(0, str(REPO / "bench"))
+    spec = importlib.util.spec_from_file_location(name, REPO / "bench" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module

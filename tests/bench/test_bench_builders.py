@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from conftest import REPO, shipped_mesh
+from conftest import REPO, load_bench, shipped_mesh
 from lbvh.verification.oracle import hits_on
 from lbvh.queries.traverse import intersect
 
@@ -20,16 +20,9 @@ sys.path.insert(0, str(REPO / "bench"))   # bench/ is not a package: the script 
 import common  # noqa: E402  (bench/common.py)
 
 
-def _load_bench():
-    path = REPO / "bench" / "bench_builders.py"
-    spec = importlib.util.spec_from_file_location("bench_builders", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module      # dataclasses look their module up by name
-    spec.loader.exec_module(module)
-    return module
 
 
-bench = _load_bench()
+bench = load_bench("bench_builders")
 
 
 def _importable(name: str) -> bool:

@@ -2,7 +2,6 @@
 (every tree gives the SAH tree's hits) and the bounce rays it traces."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import sys
@@ -10,21 +9,14 @@ import sys
 import numpy as np
 
 import lbvh
-from conftest import REPO, shipped_mesh
+from conftest import REPO, load_bench, shipped_mesh
 
 sys.path.insert(0, str(REPO / "bench"))   # bench/ is not a package: the script imports common
 
 
-def _load_bench():
-    path = REPO / "bench" / "bench_ray_sampled.py"
-    spec = importlib.util.spec_from_file_location("bench_ray_sampled", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
-bench = _load_bench()
+bench = load_bench("bench_ray_sampled")
 
 
 def test_quick_mode_writes_every_tree_with_the_sah_trees_hits(tmp_path):
