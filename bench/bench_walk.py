@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import ctypes
 import glob
+import itertools
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -168,15 +169,18 @@ def embree_tree(lib: ctypes.CDLL, lo: np.ndarray, hi: np.ndarray, branching: int
     children: dict[int, list[int]] = {}
     leaves: dict[int, list[int]] = {}
 
+    ids = itertools.count(1)   # the handles Embree keeps: never 0 (NULL)
+
     def create_node(_alloc, _count, _user):
-        children[len(children) + len(leaves) + 1] = []
-        return len(children) + len(leaves)
+        key = next(ids)
+        children[key] = []
+        return key
 
     def set_children(node, kids, count, _user):
         children[node] = [kids[k] for k in range(count)]
 
     def create_leaf(_alloc, p, count, _user):
-        key = len(children) + len(leaves) + 1
+        key = next(ids)
         leaves[key] = [p[k].prim for k in range(count)]
         return key
 

@@ -19,9 +19,6 @@ from lbvh.queries.traverse import intersect
 sys.path.insert(0, str(REPO / "bench"))   # bench/ is not a package: the script imports common
 import common  # noqa: E402  (bench/common.py)
 
-
-
-
 bench = load_bench("bench_builders")
 
 

@@ -4,17 +4,11 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 
 import numpy as np
 
 import lbvh
-from conftest import REPO, load_bench, shipped_mesh
-
-sys.path.insert(0, str(REPO / "bench"))   # bench/ is not a package: the script imports common
-
-
-
+from conftest import load_bench, shipped_mesh
 
 bench = load_bench("bench_ray_sampled")
 
