@@ -29,6 +29,9 @@
  *                 the root's reference (root_x, root_y); WIDTH=4 or 8 lanes)
  *                 instead of its binary nodes: the same hits, one vector slab
  *                 test per record (wide_tree_hits in every_hit.h).
+ *   CLANG_MOVMSK, CLANG_CTZ, CLANG_PREFETCH (WIDE=1): clang's builtins for the
+ *                 lanes' bit mask, its lowest bit and the records' prefetch,
+ *                 where the host says the compiler is clang (wide_rows.h).
  *   COUNTERS=1    (with COUNT=1, WIDE=0) also write per ray the internal nodes and the
  *                 leaves entered and the triangles tested: with tmax at the
  *                 closest hit, the work any traversal must do for that ray

@@ -82,6 +82,26 @@ inline int lowest_bit16(uint m) {
 /* The lane of the lowest set bit of a lane mask m != 0. */
 inline int lowest_lane(uint m) { return lowest_bit16(m); }
 
+/* Record q of `records` (kernels/wide.cl: 8 rows of WIDTH floats, 32 WIDTH
+ * bytes) asked into the cache ahead of its visit: a walk that pushes a
+ * record it will certainly visit (every hit, kernels/every_hit.h) has its
+ * rows arrive while it tests the current record's leaves and pops the
+ * others, where the visit would otherwise wait for them (the walk's loads
+ * depend one on the last). OpenCL's prefetch() does nothing on PoCL;
+ * CLANG_PREFETCH=1, which the host sets where the compiler is clang (PoCL),
+ * uses clang's builtin, one cache line of 64 bytes at a time, as refit.cl. */
+#ifndef CLANG_PREFETCH
+#define CLANG_PREFETCH 0
+#endif
+inline void prefetch_record(__global const float *records, int q) {
+    __global const float *r = records + 8 * WIDTH * q;
+#if CLANG_PREFETCH && defined(__clang__)
+    for (int line = 0; line < 8 * WIDTH; line += 16) __builtin_prefetch(r + line);
+#else
+    prefetch(r, 8 * WIDTH);
+#endif
+}
+
 /* max_keep and min_keep lane by lane (NaN in x keeps m). */
 inline floatw max_keep_w(floatw x, floatw m) { return x > m ? x : m; }
 inline floatw min_keep_w(floatw x, floatw m) { return x < m ? x : m; }

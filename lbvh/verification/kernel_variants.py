@@ -157,8 +157,8 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
                                        "SLAB_PAD": traverse.slab_pad(ctx)})
             for width in wide.WIDTHS:   # the records' width, as traverse.cl's
                 add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, **hit_pass,
-                                           "SLAB_PAD": traverse.slab_pad(ctx), "WIDE": 1,
-                                           "WIDTH": width})
+                                           "SLAB_PAD": traverse.slab_pad(ctx),
+                                           **all_hits.wide_defines(ctx, width)})
         for stack in traverse.STACK_BUCKETS:   # segment_work: the counting pass's counters
             add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": 1, "COUNTERS": 1,
                                        "SLAB_PAD": traverse.slab_pad(ctx)})

@@ -242,3 +242,42 @@ def test_a_large_batch_samples_its_slots_and_answers_as_the_twin():
     assert np.array_equal(capped.total, want.counts)
     firsts = want.offsets[:-1][want.counts > 0]
     assert np.array_equal(capped.t[capped.offsets[:-1][want.counts > 0]], want.t[firsts])
+
+
+@pytest.mark.parametrize("clang", [0, 1], ids=["portable", "clang-builtins"])
+def test_the_wide_walk_with_and_without_clang_builtins_and_with_a_full_stack(clang):
+    """The every-hit walk through wide records (kernels/every_hit.h wide_tree_hits)
+    gives the twin's counts and hits with clang's builtins (the lanes' bit mask, their
+    lowest bit, the prefetch of the records pushed: set where the compiler is clang)
+    and without them. With a stack of one entry a ray whose walk needs more is
+    flagged, never silently short: the unflagged rays' counts are the twin's, the
+    flagged rays' at most theirs."""
+    from lbvh.queries import all_hits as ah
+    from lbvh.queries.traverse import FLAG_OVERFLOW
+    v, f = dense_soup(1500, 5)
+    bvh = lbvh.build(v, f)
+    o, d = random_rays(v, 600, 2)
+    want = all_hits_brute(v, f, o, d, dtype=np.float32)
+    wide = bvh.wide_records()
+    assert wide.packed and wide.count > 1
+    head = (bvh.tree.nodes, wide.buffer, bvh.tree.prim_order, bvh.mesh.vertices_buf,
+            bvh.slot_faces(), bvh.tree.root, wide.root_x, wide.root_y, bvh.tree.num_nodes)
+    rays = ah._rays(o, d, 0.0, np.inf, "raise")
+    defines = {**ah.wide_defines(bvh.ctx, wide.width), "CLANG_MOVMSK": clang,
+               "CLANG_CTZ": clang, "CLANG_PREFETCH": clang}
+    total, flags, _ = ah.run_passes(bvh.ctx, ah.KERNEL_FILE, "all_hits", head,
+                                    ah.stack_need(bvh), rays, 1 << 18, None, defines=defines)
+    assert np.array_equal(total, want.total) and not flags.any()
+    total, flags, kept = ah.run_passes(bvh.ctx, ah.KERNEL_FILE, "all_hits", head,
+                                       ah.stack_need(bvh), rays, 1 << 18, -1, defines=defines)
+    assert np.array_equal(total, want.total) and not flags.any()
+    for got, name in zip(kept, ("t", "prim", "u", "v")):
+        assert np.array_equal(got.view(np.uint32), getattr(want, name).view(np.uint32)), name
+    total, flags, _ = ah.run_passes(bvh.ctx, ah.KERNEL_FILE, "all_hits", head,
+                                    ah.stack_need(bvh), rays, 1 << 18, None,
+                                    defines={**defines, "STACK_SIZE": 1})
+    full = (flags & FLAG_OVERFLOW) != 0
+    assert 0 < full.sum() < len(full)
+    assert np.array_equal(total[~full], want.total[~full])
+    assert (total[full] <= want.total[full]).all() and (total[full] < want.total[full]).any()
+    assert ah.wide_defines(bvh.ctx, wide.width)["CLANG_PREFETCH"] == int(bvh.ctx.compiler_is_clang)
