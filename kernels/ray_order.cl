@@ -29,12 +29,22 @@ inline uint cell_of_bits(float t, int bits) {
     return (uint)q;
 }
 
-/* Interleave three cells of `bits` bits, x highest (the bit order of morton.cl). */
+/* The 10 low bits of v spread out, two zero bits after each (bit b to bit
+ * 3b), by four shifts and masks instead of a loop over the bits (the
+ * point keys of 1M points took 10 ms that way on 2 cores). */
+inline uint spread_cell(uint v) {
+    v &= 0x3ffu;
+    v = (v | (v << 16)) & 0x030000ffu;
+    v = (v | (v << 8)) & 0x0300f00fu;
+    v = (v | (v << 4)) & 0x030c30c3u;
+    return (v | (v << 2)) & 0x09249249u;
+}
+
+/* Interleave three cells of `bits` bits (at most 10), x highest (the bit order
+ * of morton.cl): bit b of x, y, z goes to bit 3b + 2, 3b + 1, 3b. */
 inline uint interleave_bits(uint x, uint y, uint z, int bits) {
-    uint code = 0;
-    for (int b = bits - 1; b >= 0; --b)
-        code = (code << 3) | (((x >> b) & 1u) << 2) | (((y >> b) & 1u) << 1) | ((z >> b) & 1u);
-    return code;
+    const uint keep = (1u << bits) - 1u;
+    return spread_cell(x & keep) << 2 | spread_cell(y & keep) << 1 | spread_cell(z & keep);
 }
 
 inline uint cell_of(float t) { return cell_of_bits(t, CELL_BITS); }
