@@ -35,9 +35,10 @@ typedef union { intw v; int s[WIDTH]; } intw_lanes;
  * without branches: the closest-hit walk (traverse.cl) goes through the
  * lanes hit by iterating over these bits (lowest_lane) instead of testing all
  * WIDTH lanes one by one, whose branches the CPU mispredicts (measured 1-8%
- * faster, bench/README.md). enter_lanes keeps the per-lane test: the box and
- * every-hit walks enter more lanes per record, and there the bit mask
- * measured no faster. */
+ * faster, bench/README.md). The every-hit walk (every_hit.h) takes its
+ * lanes by the mask too, together with a prefetch of the records it pushes
+ * (alone, the mask measured no faster there). enter_lanes, the box walk's
+ * step, keeps the per-lane test. */
 #ifndef CLANG_MOVMSK
 #define CLANG_MOVMSK 0
 #endif
@@ -106,8 +107,8 @@ inline void prefetch_record(__global const float *records, int q) {
 inline floatw max_keep_w(floatw x, floatw m) { return x > m ? x : m; }
 inline floatw min_keep_w(floatw x, floatw m) { return x < m ? x : m; }
 
-/* A step of a walk that enters every lane set in *lanes (box queries, every
- * hit): the first such lane's reference becomes (*x, *y), from rows 6-7 of the
+/* A step of a walk that enters every lane set in *lanes (box queries,
+ * overlap.cl): the first such lane's reference becomes (*x, *y), from rows 6-7 of the
  * record (`ref`), and 1 is returned (0 for no lane); the others' references
  * are pushed on (stack_x, stack_y) of `capacity` entries, and a push beyond
  * it drops that lane and sets `overflow` in *flag. */
