@@ -53,10 +53,14 @@
  * it (a silhouette: the parity of the crossings is kept). 0: the edge is a
  * point in 2D (such a triangle has det = 0 and is missed anyway). Comparisons
  * only: the signs of the differences are exact in any precision. */
-#define EDGE_SIGN(F, px, py, qx, qy) \
-    ((F) > 0 ? 1 : (F) < 0 ? -1 : (py) > (qy) ? 1 : (py) < (qy) ? -1 : (qx) > (px) ? 1 : \
-     (qx) < (px) ? -1 : 0)
-inline int same_signs(int a, int b, int c) { return a == b && b == c && a != 0; }
+#define SIGN_OF(a, b) (((a) > (b)) - ((a) < (b)))   /* 1, -1, or 0 (equal, or NaN) */
+/* s, or t where s is 0, or u where both are: by masks, without branches (the
+ * nested conditionals compiled to three unpredictable branches per triangle) */
+inline int first_nonzero(int s, int t, int u) {
+    return s | (-(s == 0) & (t | (-(t == 0) & u)));
+}
+#define EDGE_SIGN(F, px, py, qx, qy) first_nonzero(SIGN_OF(F, 0), SIGN_OF(py, qy), SIGN_OF(qx, px))
+inline int same_signs(int a, int b, int c) { return (a == b) & (b == c) & (a != 0); }
 /* U = c x b, V = a x c, W = b x a (hit_triangle): whether the ray, moved, is
  * inside; without EDGE_RULE, whether no two of U, V, W have opposite signs. */
 #if EDGE_RULE
@@ -65,7 +69,7 @@ inline int same_signs(int a, int b, int c) { return a == b && b == c && a != 0; 
                EDGE_SIGN(W, bx, by, ax, ay))
 #else
 #define RAY_INSIDE(U, V, W, ax, ay, bx, by, cx, cy) \
-    (!(((U) < 0 || (V) < 0 || (W) < 0) && ((U) > 0 || (V) > 0 || (W) > 0)))
+    (!((((U) < 0) | ((V) < 0) | ((W) < 0)) & (((U) > 0) | ((V) > 0) | ((W) > 0))))
 #endif
 
 /* The hot loop is written with comparisons instead of fmin/fmax/select/vload3:
