@@ -35,7 +35,8 @@ typedef union { intw v; int s[WIDTH]; } intw_lanes;
  * without branches: the closest-hit walk (traverse.cl) goes through the
  * lanes hit by iterating over these bits (lowest_lane) instead of testing all
  * WIDTH lanes one by one, whose branches the CPU mispredicts (measured 1-8%
- * faster, bench/README.md). The every-hit walk (every_hit.h) takes its
+ * faster, bench/README.md), and so do the closest-point and winding walks
+ * (closest.cl, winding.cl). The every-hit walk (every_hit.h) takes its
  * lanes by the mask too, together with a prefetch of the records it pushes
  * (alone, the mask measured no faster there). enter_lanes, the box walk's
  * step, keeps the per-lane test. */

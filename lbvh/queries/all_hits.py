@@ -32,6 +32,7 @@ import pyopencl as cl
 from .. import device as dev
 from .rays import InvalidRays, Rays, check_invalid_rays, check_rays, is_device_array
 from .target import QueryTarget
+from .wide import lane_defines
 from .traverse import FLAG_OVERFLOW, FLAG_VISIT_LIMIT, slab_pad, stack_bucket, stack_need
 
 KERNEL_FILE = "all_hits.cl"
@@ -277,9 +278,8 @@ def wide_defines(ctx: dev.Context, width: int) -> dict[str, int]:
     records pushed, where the compiler is clang (kernels/wide_rows.h; with the walk
     that pushes no leaf, count_hits measured 1.10-1.16x on the bunny, Sponza and
     terrain-1m, kernels/every_hit.h)."""
-    clang = int(ctx.compiler_is_clang)
-    return {"WIDE": 1, "WIDTH": width, "CLANG_MOVMSK": clang, "CLANG_CTZ": clang,
-            "CLANG_PREFETCH": clang}
+    return {"WIDE": 1, "WIDTH": width, **lane_defines(ctx),
+            "CLANG_PREFETCH": int(ctx.compiler_is_clang)}
 
 
 #: Hit slots per ray of all_hits' collecting pass, for batches too small to sample

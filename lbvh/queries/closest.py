@@ -26,6 +26,7 @@ from .. import device as dev
 from ..mesh import real_array
 from .ray_order import MIN_POINTS, point_order
 from .target import QueryTarget
+from .wide import lane_defines
 from .traverse import stack_bucket, stack_need
 
 KERNEL_FILE = "closest.cl"
@@ -109,13 +110,15 @@ def stack_size_for(target: QueryTarget) -> int:
 def walk_of(target: QueryTarget) -> tuple[tuple[cl.Buffer, int, int], dict[str, int]]:
     """What a depth-first walk of kernels/closest.cl or kernels/overlap.cl is given: the
     records and the root's reference in them ``(buffer, root_x, root_y)``, and the
-    defines ``STACK_SIZE`` (and ``WIDE``, ``WIDTH``). Through the wide records where
+    defines ``STACK_SIZE`` (and ``WIDE``, ``WIDTH`` and the lanes' :func:`lane_defines`
+    of :mod:`lbvh.queries.wide`). Through the wide records where
     they fit (a record pushes all its lanes entered but one: the records' own stack
     need), else through the binary nodes (one push per level)."""
     wide = target.wide_records()
     if wide.packed:
         return ((wide.buffer, wide.root_x, wide.root_y),
-                {"STACK_SIZE": stack_bucket(stack_need(target)), "WIDE": 1, "WIDTH": wide.width})
+                {"STACK_SIZE": stack_bucket(stack_need(target)), "WIDE": 1, "WIDTH": wide.width,
+                 **lane_defines(target.ctx)})
     return (target.tree.nodes, target.tree.root, 0), {"STACK_SIZE": stack_size_for(target)}
 
 

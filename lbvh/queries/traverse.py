@@ -62,6 +62,7 @@ from .rays import (DEVICE_KERNEL_FILE, DeviceRays, InvalidRays, Rays, check_inva
 from .ray_order import ray_order, worth_ordering
 from ..tree import Mesh, Tree
 from .target import QueryTarget
+from .wide import lane_defines
 
 KERNEL_FILE = "traverse.cl"
 
@@ -351,13 +352,7 @@ def kernel_defines(ctx: dev.Context, any_hit: bool, triangle_test: str, counters
         raise ValueError(f"stack_size: {stack_size!r}; expected a positive integer")
     defines = {"ANY_HIT": int(bool(any_hit)), "COUNTERS": int(bool(counters)),
                "TRIANGLE_TEST": TRIANGLE_TESTS[triangle_test], "STACK_SIZE": int(stack_size),
-               "SLAB_PAD": slab_pad(ctx),
-               # lane_bits by one vmovmskps where clang compiles for AVX (wide_rows.h;
-               # measured 1.06-1.10x on closest and any hits, Zen 3)
-               "CLANG_MOVMSK": int(ctx.compiler_is_clang),
-               # the lowest lane hit by clang's count of trailing zeros (wide_rows.h;
-               # measured 1.04-1.13x on closest hits, 1.04-1.08x on any hits, Zen 3)
-               "CLANG_CTZ": int(ctx.compiler_is_clang)}
+               "SLAB_PAD": slab_pad(ctx), **lane_defines(ctx)}
     if NODE_ORDERS[node_order] and not any_hit:
         defines["ORDER_GLOBAL"] = 1
     return defines

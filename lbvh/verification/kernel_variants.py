@@ -142,11 +142,11 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
         add(rays.DEVICE_KERNEL_FILE, {"SRC_T": ctype, **({"SRC_IS_DOUBLE": 1}
                                                           if ctype == "double" else {})})
     # overlap.cl: both passes, one stack size per bucket
-    for stack, count in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
+    for ctx, stack, count in itertools.product(ctxs, traverse.STACK_BUCKETS, (0, 1)):
         add(overlap.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count})
         for width in wide.WIDTHS:   # through wide records of either width
             add(overlap.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count, "WIDE": 1,
-                                      "WIDTH": width})
+                                      "WIDTH": width, **wide.lane_defines(ctx)})
     # all_hits.cl: both passes (the count with and without counters; the collecting pass
     # with and without SLOTS_ONLY), one stack size per bucket, the slab padding of the
     # device, through binary nodes and the device's wide records
@@ -184,7 +184,8 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
                                   **winding.kernel_defines(ctx, scaled)})
         for width in wide.WIDTHS:
             add(winding.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered, "WIDE": 1,
-                                      "WIDTH": width, **winding.kernel_defines(ctx, scaled)})
+                                      "WIDTH": width, **wide.lane_defines(ctx),
+                                      **winding.kernel_defines(ctx, scaled)})
     # winding_moments.cl: the order the trees keep, into one row per node or the rows of
     # wide records of either width
     for width in (None, *wide.WIDTHS):
@@ -192,11 +193,11 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
             winding_moments.kernel_defines(winding_moments.DEFAULT_ORDER, width))
     # closest.cl: one stack size per bucket (NO_FP64 is for tests only), through binary
     # nodes and wide records of either width
-    for stack, ordered in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
+    for ctx, stack, ordered in itertools.product(ctxs, traverse.STACK_BUCKETS, (0, 1)):
         add(closest.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered})
         for width in wide.WIDTHS:
             add(closest.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered, "WIDE": 1,
-                                      "WIDTH": width})
+                                      "WIDTH": width, **wide.lane_defines(ctx)})
     # instance_closest.cl: closest points through a scene, as closest.cl's
     for stack, ordered in itertools.product(traverse.STACK_BUCKETS, (0, 1)):
         add(instance_closest.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered})

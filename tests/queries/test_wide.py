@@ -155,3 +155,28 @@ def test_lane_helpers_by_clang_builtins_answer_as_the_portable_code(any_hit, def
     assert (got[1][3].view(np.int32) < 0).sum() > 100
     assert tr.kernel_defines(bvh.ctx, any_hit, "watertight", False, 8)[define] == \
         int(bvh.ctx.compiler_is_clang)
+
+
+def test_point_walks_answer_the_same_with_the_lane_builtins_and_without(monkeypatch):
+    """Closest points and winding numbers through wide records take the lanes' bit mask
+    and lowest lane by clang's builtins where the compiler is clang
+    (lbvh.queries.wide.lane_defines: CLANG_MOVMSK, CLANG_CTZ) and by the portable bit
+    tests elsewhere: the same distances, triangles and winding numbers bit for bit."""
+    import lbvh.queries.closest as closest_module
+    from lbvh.queries import wide as wide_module
+    v, f = lbvh.data.teapot()
+    bvh = lbvh.build(v, f)
+    rng = np.random.default_rng(5)
+    lo, hi = v.min(0), v.max(0)
+    p = (lo - 0.2 * (hi - lo) + rng.uniform(0, 1, (20000, 3)) * 1.4 * (hi - lo)).astype(np.float32)
+    got = {}
+    for value in (0, 1):
+        monkeypatch.setattr(closest_module, "lane_defines",
+                            lambda ctx, v=value: {"CLANG_MOVMSK": v, "CLANG_CTZ": v})
+        c = bvh.closest_points(p)
+        got[value] = (c.distance.view(np.uint32), c.prim, bvh.winding_numbers(p).view(np.uint32))
+    for a, b in zip(got[0], got[1]):
+        assert np.array_equal(a, b)
+    assert 0.02 < (bvh.winding_numbers(p) > 0.5).mean() < 0.98   # points inside and outside
+    assert wide_module.lane_defines(bvh.ctx) == {"CLANG_MOVMSK": int(bvh.ctx.compiler_is_clang),
+                                                 "CLANG_CTZ": int(bvh.ctx.compiler_is_clang)}
