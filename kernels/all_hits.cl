@@ -32,6 +32,10 @@
  *   CLANG_MOVMSK, CLANG_CTZ, CLANG_PREFETCH (WIDE=1): clang's builtins for the
  *                 lanes' bit mask, its lowest bit and the records' prefetch,
  *                 where the host says the compiler is clang (wide_rows.h).
+ *   SLOT_TRIANGLES=1  `vertices` holds each slot's triangle's corners
+ *                 (traverse.cl order_triangles) and slot_faces is not read;
+ *                 the wide walk prefetches its leaf lanes' triangles
+ *                 (every_hit.h).
  *   COUNTERS=1    (with COUNT=1, WIDE=0) also write per ray the internal nodes and the
  *                 leaves entered and the triangles tested: with tmax at the
  *                 closest hit, the work any traversal must do for that ray

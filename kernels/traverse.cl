@@ -2,8 +2,10 @@
  * lbvh/queries/traverse.py. The ray's constants, the slab test and the triangle
  * tests are kernels/ray_triangle.h's.
  *
- * Two kernels:
+ * Three kernels:
  *   order_faces  copies the faces in slot order, once per tree;
+ *   order_triangles  copies the triangles' corners in slot order, once per
+ *                tree and mesh (the every-hit walk's, kernels/every_hit.h);
  *   traverse     traces rays through the tree's wide records (kernels/wide.cl:
  *                up to WIDTH children per node, their boxes in rows of WIDTH
  *                floats, so that one vector slab test covers all children of
@@ -176,6 +178,26 @@ __kernel void order_faces(__global const uint *faces, __global const int *prim_o
         slot_faces[3 * s] = faces[3 * t];
         slot_faces[3 * s + 1] = faces[3 * t + 1];
         slot_faces[3 * s + 2] = faces[3 * t + 2];
+    }
+}
+
+/* The corners of each slot's triangle, slot_triangles[9 s + 3 j + a] =
+ * vertices[3 faces[prim_order[s]][j] + a]: a leaf's triangle is then one run
+ * of 36 bytes, read (and asked into the cache ahead) without the two
+ * dependent loads through the faces (kernels/every_hit.h SLOT_TRIANGLES). */
+__kernel void order_triangles(__global const float *vertices, __global const uint *faces,
+                              __global const int *prim_order, const int num_prims,
+                              const int per_item, __global float *slot_triangles) {
+    const int gid = get_global_id(0);
+    const int last = chunk_last(gid, per_item, num_prims);
+    for (int s = chunk_first(gid, per_item, num_prims); s < last; ++s) {
+        const int t = prim_order[s];
+        for (int j = 0; j < 3; ++j) {
+            const uint v = faces[3 * t + j];
+            slot_triangles[9 * s + 3 * j] = vertices[3 * v];
+            slot_triangles[9 * s + 3 * j + 1] = vertices[3 * v + 1];
+            slot_triangles[9 * s + 3 * j + 2] = vertices[3 * v + 2];
+        }
     }
 }
 

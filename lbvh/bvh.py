@@ -67,6 +67,7 @@ class BVH:
         self._host: dict[str, np.ndarray] = {}
         self._wide: Wide | None = None
         self._slot_faces: cl.Buffer | None = None
+        self._slot_triangles: cl.Buffer | None = None
         self._moments: tuple[Wide, cl.Buffer] | None = None
         self._depth: int | None = None
         # Everything handed back when this BVH is dropped: the tree's buffers and
@@ -213,6 +214,22 @@ class BVH:
         return self._slot_faces
 
     @dev.serialised
+    def slot_triangles(self) -> cl.Buffer:
+        """``float32 (F, 3, 3)`` each slot's triangle's corners on the device
+        (:func:`lbvh.queries.traverse.order_triangles`), made on first use; a refit,
+        which moves the vertices, renews it."""
+        if self._slot_triangles is None:
+            self._slot_triangles = traverse.order_triangles(self.tree, self.mesh)
+            self._owned.append(self._slot_triangles)
+        return self._slot_triangles
+
+    def _drop_slot_triangles(self) -> None:
+        held, self._slot_triangles = self._slot_triangles, None
+        if held is not None:
+            self._owned[:] = [b for b in self._owned if b is not held]
+            self.ctx.memory.free(held)
+
+    @dev.serialised
     def winding_moments(self) -> cl.Buffer:
         """The moments of the winding number query on the device, made on first use
         (:func:`lbvh.queries.winding_moments.make_moments`) for the walk that
@@ -262,6 +279,7 @@ class BVH:
         self.mesh = mesh
         self._host.clear()
         self._drop_moments()   # of the old boxes: made again on the next query
+        self._drop_slot_triangles()   # of the old vertices: likewise
         if self._wide is not None:
             write_records(self.tree, self._wide)   # the traversal's copies of the boxes
         return self

@@ -262,10 +262,8 @@ def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None,
     tree = target.tree
     wide = target.wide_records()
     if wide.packed and work is None:   # the counters count binary nodes (segment_work)
-        head = (tree.nodes, wide.buffer, tree.prim_order, target.mesh.vertices_buf,
-                target.slot_faces(), tree.root, wide.root_x, wide.root_y, tree.num_nodes)
-        return run_passes(target.ctx, KERNEL_FILE, "all_hits", head, stack_need(target), rays,
-                          batch, cap, defines=wide_defines(target.ctx, wide.width))
+        return run_passes(target.ctx, KERNEL_FILE, "all_hits", wide_head(target), stack_need(target),
+                          rays, batch, cap, defines=wide_defines(target.ctx, wide.width))
     head = (tree.nodes, tree.nodes, tree.prim_order, target.mesh.vertices_buf,
             target.slot_faces(), tree.root, tree.root, 0, tree.num_nodes)
     return run_passes(target.ctx, KERNEL_FILE, "all_hits", head, target.traversal_depth(), rays,
@@ -277,9 +275,19 @@ def wide_defines(ctx: dev.Context, width: int) -> dict[str, int]:
     clang's builtins for the lanes' bit mask, its lowest bit and the prefetch of the
     records pushed, where the compiler is clang (kernels/wide_rows.h; with the walk
     that pushes no leaf, count_hits measured 1.10-1.16x on the bunny, Sponza and
-    terrain-1m, kernels/every_hit.h)."""
+    terrain-1m, kernels/every_hit.h), and the triangles read in slot order
+    (``SLOT_TRIANGLES``: :func:`wide_head` passes them)."""
     return {"WIDE": 1, "WIDTH": width, **lane_defines(ctx),
-            "CLANG_PREFETCH": int(ctx.compiler_is_clang)}
+            "CLANG_PREFETCH": int(ctx.compiler_is_clang), "SLOT_TRIANGLES": 1}
+
+
+def wide_head(target: QueryTarget) -> tuple:
+    """all_hits.cl's arguments before the rays for the walk through the target's wide
+    records (:func:`wide_defines`): the triangles' corners in slot order
+    (``target.slot_triangles()``) where the kernel's ``vertices`` go."""
+    tree, wide = target.tree, target.wide_records()
+    return (tree.nodes, wide.buffer, tree.prim_order, target.slot_triangles(),
+            target.slot_faces(), tree.root, wide.root_x, wide.root_y, tree.num_nodes)
 
 
 #: Hit slots per ray of all_hits' collecting pass, for batches too small to sample

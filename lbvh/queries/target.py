@@ -25,6 +25,10 @@ class QueryTarget(Protocol):
     def slot_faces(self) -> cl.Buffer:
         """The faces in slot order (:func:`lbvh.queries.traverse.order_faces`), cached."""
 
+    def slot_triangles(self) -> cl.Buffer:
+        """The triangles' corners in slot order
+        (:func:`lbvh.queries.traverse.order_triangles`), cached until a refit."""
+
     def traversal_depth(self) -> int:
         """The tree's depth (0 for a root leaf), cached."""
 

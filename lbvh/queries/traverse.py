@@ -70,7 +70,8 @@ KERNEL_FILE = "traverse.cl"
 __all__ = ["Hits", "DeviceHitArrays", "DeviceHits", "Rays", "DeviceRays", "check_rays",
            "upload_rays", "intersect", "occluded", "intersect_async", "occluded_async",
            "geometric_normals", "trace_buffers", "read_hits", "stack_need", "stack_size_for",
-           "order_faces", "FLAG_OVERFLOW", "FLAG_VISIT_LIMIT", "FLAG_NAN_RAY", "STACK_BUCKETS"]
+           "order_faces", "order_triangles", "order_triangles_numpy", "FLAG_OVERFLOW",
+           "FLAG_VISIT_LIMIT", "FLAG_NAN_RAY", "STACK_BUCKETS"]
 
 #: Bits of the per-ray flag word written by the kernel.
 FLAG_OVERFLOW = 1      # the stack was full: a subtree was skipped
@@ -380,6 +381,27 @@ def order_faces(tree: Tree, mesh: Mesh) -> cl.Buffer:
     dev.run(ctx, KERNEL_FILE, "order_faces", launch, mesh.faces_buf, tree.prim_order,
             tree.num_prims, launch.per_item, out, defines={})
     return out
+
+
+def order_triangles(tree: Tree, mesh: Mesh) -> cl.Buffer:
+    """``float32 (F, 3, 3)`` on the device: ``vertices[faces[prim_order]]``, each slot's
+    triangle as its three corners (kernels/traverse.cl, order_triangles; twin:
+    :func:`order_triangles_numpy`), 36 bytes per slot, which the every-hit walk reads
+    instead of going through the faces (kernels/every_hit.h ``SLOT_TRIANGLES``).
+    :class:`lbvh.BVH` makes it on first use and keeps it until a refit moves the
+    vertices."""
+    ctx = tree.ctx
+    out = ctx.memory.alloc(36 * max(tree.num_prims, 1), pooled=True)
+    launch = ctx.launch(tree.num_prims, min_per_item=4096, gpu_per_item=1)
+    dev.run(ctx, KERNEL_FILE, "order_triangles", launch, mesh.vertices_buf, mesh.faces_buf,
+            tree.prim_order, tree.num_prims, launch.per_item, out, defines={})
+    return out
+
+
+def order_triangles_numpy(vertices: np.ndarray, faces: np.ndarray,
+                          prim_order: np.ndarray) -> np.ndarray:
+    """Twin of :func:`order_triangles`: ``float32 (S, 3, 3)``, the same values (copies)."""
+    return np.asarray(vertices, np.float32)[np.asarray(faces)[np.asarray(prim_order)]]
 
 
 # -- device-level entry -----------------------------------------------------------

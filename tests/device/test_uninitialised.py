@@ -4,8 +4,8 @@ Oclgrind's uninitialised-value checker cannot run on Debian's Oclgrind 21.10
 (tests/verification/test_second_implementation.py says why), so this is the check on PoCL:
 every buffer the package hands out uninitialised, fresh or from its pool, is
 first filled with a byte (``LBVH_POISON_BYTE``), and the same workload (every
-builder, refit, the wide records, closest and any hit with counters, an AO
-render, the ray order) must give the same answers for 0x00, 0xff and 0x7f as
+builder, refit, the wide records, closest and any hit with counters, every hit
+and the hit counts, an AO render, the ray order) must give the same answers for 0x00, 0xff and 0x7f as
 without the fill. A read of unwritten memory would see the byte.
 """
 from __future__ import annotations
@@ -48,10 +48,12 @@ for mesh, kw in (((v, f), {}), ((sv, sf), {"key_bits": 63}), ((sv, sf), {"collap
     n = b.nodes
     h = b.intersect(o * 40 if mesh[0] is v else o, d, counters=True)
     a = b.occluded(o, d, tmax=0.7, return_hits=True)
+    e = b.all_hits(o, d)
     out.append(digest(*(n[k] for k in n.dtype.names), b.parent, b.prim_order,
-                      h.t, h.prim, h.u, h.v, h.nodes_visited, h.tris_tested, a.hit))
+                      h.t, h.prim, h.u, h.v, h.nodes_visited, h.tris_tested, a.hit,
+                      e.offsets, e.t, e.prim))
     b.refit(mesh[0] * 1.5)
-    out.append(digest(b.lower, b.upper, b.intersect(o, d).t))
+    out.append(digest(b.lower, b.upper, b.intersect(o, d).t, b.count_hits(o, d)))
 camera = frame_bounds(v.min(axis=0), v.max(axis=0), 40, 30)
 out.append(digest(lbvh.render(lbvh.build(v, f), camera, "ao", ao_samples=2).image))
 print("digests", " ".join(out))

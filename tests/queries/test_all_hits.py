@@ -270,8 +270,7 @@ def test_the_wide_walk_with_and_without_clang_builtins_and_with_a_full_stack(cla
     want = all_hits_brute(v, f, o, d, dtype=np.float32)
     wide = bvh.wide_records()
     assert wide.packed and wide.count > 1
-    head = (bvh.tree.nodes, wide.buffer, bvh.tree.prim_order, bvh.mesh.vertices_buf,
-            bvh.slot_faces(), bvh.tree.root, wide.root_x, wide.root_y, bvh.tree.num_nodes)
+    head = ah.wide_head(bvh)
     rays = ah._rays(o, d, 0.0, np.inf, "raise")
     defines = {**ah.wide_defines(bvh.ctx, wide.width), "CLANG_MOVMSK": clang,
                "CLANG_CTZ": clang, "CLANG_PREFETCH": clang}
@@ -291,3 +290,21 @@ def test_the_wide_walk_with_and_without_clang_builtins_and_with_a_full_stack(cla
     assert np.array_equal(total[~full], want.total[~full])
     assert (total[full] <= want.total[full]).all() and (total[full] < want.total[full]).any()
     assert ah.wide_defines(bvh.ctx, wide.width)["CLANG_PREFETCH"] == int(bvh.ctx.compiler_is_clang)
+
+
+def test_refit_renews_the_triangles_in_slot_order():
+    """The every-hit walk reads each slot's triangle from a copy of its corners
+    (bvh.slot_triangles): after a refit moves the vertices, the counts and hits are
+    those of the moved mesh, as the twin gives them, not the copy's."""
+    v, f = dense_soup(600, 7)
+    bvh = lbvh.build(v, f)
+    o, d = random_rays(v, 300, 8)
+    before = bvh.slot_triangles()
+    same(bvh.all_hits(o, d), all_hits_brute(v, f, o, d, dtype=np.float32))
+    moved = (v * np.float32(1.5) + np.float32(0.25)).astype(np.float32)
+    bvh.refit(moved)
+    o2, d2 = random_rays(moved, 300, 9)
+    want = all_hits_brute(moved, f, o2, d2, dtype=np.float32)
+    assert np.array_equal(bvh.count_hits(o2, d2), want.total)
+    same(bvh.all_hits(o2, d2), want)
+    assert bvh.slot_triangles() is not before

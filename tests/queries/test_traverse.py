@@ -680,6 +680,17 @@ def test_faces_in_slot_order_equal_their_numpy_twin(kind):
     assert np.array_equal(got, bvh.faces[bvh.prim_order])
 
 
+@pytest.mark.parametrize("kind", ["lbvh30", "lbvh_collapse", "sah", "host_median"])
+def test_triangles_in_slot_order_equal_their_numpy_twin(kind):
+    from lbvh.queries.traverse import order_triangles_numpy
+    bvh = tree("teapot", kind)
+    got = np.empty((bvh.num_slots, 3, 3), np.float32)
+    cl.enqueue_copy(bvh.ctx.queue, got, bvh.slot_triangles(), is_blocking=True)
+    want = order_triangles_numpy(bvh.vertices, bvh.faces, bvh.prim_order)
+    assert want.shape == (bvh.num_slots, 3, 3)
+    assert np.array_equal(got.view(np.uint32), want.view(np.uint32))
+
+
 def _same_hits(a, b, v, f, o, d, context):
     """The same t bit for bit; the same triangle, or one hit at exactly that t too
     (rays through a shared edge: the first triangle met wins, and the order of the
