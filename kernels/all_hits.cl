@@ -1,4 +1,5 @@
-/* Every hit along each ray, and the hit counts (lbvh/queries/all_hits.py).
+/* Every hit along each ray, and the hit counts (lbvh/queries/all_hits.py); and
+ * move_runs, which gathers the kept hits from their slots (at the end).
  *
  * Per ray, the walk of kernels/every_hit.h: a depth-first traversal of every
  * node (binary, or wide record with WIDE=1) whose box the ray's [tmin, tmax] enters, every triangle of every such
@@ -99,4 +100,21 @@ __kernel void all_hits(__global const float4 *nodes, __global const float *recor
     work[i] = (int4)(visits - leaves, leaves, tested, 0);
 #endif
     flags[i] = flag;
+}
+
+/* The kept hits moved from the collecting pass's slots into the flat arrays the
+ * host returns, on the device (lbvh/queries/all_hits.py move_runs): run k, words
+ * [src_first[k], src_first[k] + count[k]) of src, goes to [dst_first[k], ...) of
+ * dst, one 32-bit column at a time, the runs [chunk_first, chunk_last) per
+ * work-item. Only the kept hits cross to the host, not the slots; measured
+ * against the host's gather of them (bench/README.md). */
+__kernel void move_runs(__global const uint *src, __global uint *dst,
+                        __global const long *src_first, __global const long *dst_first,
+                        __global const int *count, const int runs, const int per_item) {
+    const int gid = get_global_id(0);
+    const int last = chunk_last(gid, per_item, runs);
+    for (int k = chunk_first(gid, per_item, runs); k < last; ++k) {
+        const long from = src_first[k], to = dst_first[k];
+        for (int j = 0; j < count[k]; ++j) dst[to + j] = src[from + j];
+    }
 }

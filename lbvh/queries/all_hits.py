@@ -297,10 +297,12 @@ def wide_head(target: QueryTarget) -> tuple:
 FIRST_SLOTS = 8
 #: Larger batches count the hits of a sample of their rays first (one in SAMPLE_EVERY),
 #: and give every ray the slots that SLOT_QUANTILE of the sample's rays need, within
-#: SLOT_RANGE (16 bytes a slot: 128 MB for 32 slots of the default 262,144 rays).
+#: SLOT_RANGE (16 bytes a slot: 256 MB for 64 slots of the default 262,144 rays) and
+#: within the device's largest allocation for all the columns together. Only the kept
+#: hits are read back (:func:`move_runs`), so a slot left empty costs memory, not time.
 SAMPLE_EVERY = 64
-SLOT_QUANTILE = 0.9
-SLOT_RANGE = (4, 32)
+SLOT_QUANTILE = 0.97
+SLOT_RANGE = (4, 64)
 
 
 def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, depth: int,
@@ -347,29 +349,32 @@ def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, dep
             # all hits (or more than the slots): a ray past its slots is traced again,
             # so the first pass only fills them (SLOTS_ONLY); a max_hits within them:
             # every ray done in this pass, the nearest kept
-            counts, part_flags, _, cols = pass_.run(part, np.arange(m + 1, dtype=np.int64) * slots,
-                                                    slots_only=cap < 0 or cap > slots)
-            keep = counts.astype(np.int64) if cap < 0 else np.minimum(counts, cap)
-            offsets = _offsets(keep)
-            out = tuple(np.empty(int(offsets[-1]), t) for t in dtypes)
-            # the rays whose hits all fit their slots: copied from them
-            done = keep <= slots
-            within = np.arange(slots)[None, :] < np.minimum(keep, slots)[:, None]
-            within &= done[:, None]
-            dest = (offsets[:-1, None] + np.arange(slots)[None, :])[within]
-            for o, c in zip(out, cols):
-                o[dest] = c.reshape(m, slots)[within]
-            # the others, traced again with room for all they keep
-            again = np.flatnonzero(~done)
-            if len(again):
-                need = keep[again]
-                sub_offsets = _offsets(need)
-                _, sub_flags, _, sub_cols = pass_.run(_pick(part, again), sub_offsets)
-                part_flags[again] |= sub_flags
-                rank = np.arange(int(sub_offsets[-1])) - np.repeat(sub_offsets[:-1], need)
-                dest = np.repeat(offsets[:-1][again], need) + rank
-                for o, c in zip(out, sub_cols):
-                    o[dest] = c
+            counts, part_flags, _, slot_cols = pass_.run(
+                part, np.arange(m + 1, dtype=np.int64) * slots, slots_only=cap < 0 or cap > slots)
+            mem = ctx.memory
+            flat: list[cl.Buffer] = []
+            sub_cols: list[cl.Buffer] = []
+            try:
+                keep = counts.astype(np.int64) if cap < 0 else np.minimum(counts, cap)
+                offsets = _offsets(keep)
+                flat = [mem.alloc(4 * max(int(offsets[-1]), 1)) for _ in dtypes]
+                # the rays whose hits all fit their slots: moved from them on the device
+                done = np.flatnonzero((keep <= slots) & (keep > 0))
+                move_runs(ctx, slot_cols, flat, done * slots, offsets[done], keep[done])
+                mem.free(*slot_cols)
+                slot_cols = []
+                # the others, traced again with room for all they keep
+                again = np.flatnonzero(keep > slots)
+                if len(again):
+                    need = keep[again]
+                    sub_offsets = _offsets(need)
+                    _, sub_flags, _, sub_cols = pass_.run(_pick(part, again), sub_offsets)
+                    part_flags[again] |= sub_flags
+                    move_runs(ctx, sub_cols, flat, sub_offsets[:-1], offsets[again], need)
+                out = tuple(dev.from_device(ctx, buf, t, (int(offsets[-1]),))
+                            for buf, t in zip(flat, dtypes))
+            finally:
+                mem.free(*slot_cols, *sub_cols, *flat)
             pieces.append((out[0], out[3], out[1], out[2], *out[4:]))
         total[good[start:stop]] = counts
         flags[good[start:stop]] = part_flags
@@ -396,7 +401,11 @@ def first_slots(pass_: "_Pass", rays: Rays, cap: int) -> int:
     rays have 16 hits on average, terrain-1m's 9); 16 slots 1.5, 1.9, 1.5; the sampled
     slots 1.4-1.5, 1.5-1.7, 1.3-1.4. ``all_hits`` against the two passes (e0142d1),
     alternating processes: 606, 630 -> 346, 336 ms on the bunny, 2954, 2181 -> 1352,
-    1529 ms on Sponza, 3779, 3580 -> 2487, 2745 ms on terrain-1m, the same hits."""
+    1529 ms on Sponza, 3779, 3580 -> 2487, 2745 ms on terrain-1m, the same hits. Once
+    only the kept hits were read back (:func:`move_runs`), the 0.97 quantile within 4
+    to 64 slots against the 0.9 within 4 to 32: 1.07, 1.09, 1.10 (bunny, Sponza,
+    terrain-1m; 7 rounds in one process; the 0.99 quantile 1.06, 1.07, 1.16): the
+    rays traced again are the ones with the most hits, and the longest walks."""
     m = len(rays)
     if m < 64 * SAMPLE_EVERY:
         slots = FIRST_SLOTS
@@ -404,6 +413,9 @@ def first_slots(pass_: "_Pass", rays: Rays, cap: int) -> int:
         counts = pass_.run(_pick(rays, np.arange(0, m, SAMPLE_EVERY)), None)[0]
         need = int(np.ceil(np.quantile(counts, SLOT_QUANTILE)))
         slots = int(np.clip(need, *SLOT_RANGE))
+    # every column's slots within one of the device's largest buffers
+    fit = pass_.ctx.memory.max_alloc // (4 * len(pass_.dtypes) * max(m, 1))
+    slots = max(1, min(slots, fit))
     return slots if cap < 0 else min(slots, cap)
 
 
@@ -412,6 +424,36 @@ def _offsets(counts: np.ndarray) -> np.ndarray:
     offsets = np.zeros(len(counts) + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
     return offsets
+
+
+def move_runs(ctx: dev.Context, src: list[cl.Buffer], dst: list[cl.Buffer],
+              src_first: np.ndarray, dst_first: np.ndarray, count: np.ndarray) -> None:
+    """Copy run k of every column, ``count[k]`` 32-bit words from ``src_first[k]`` of
+    ``src[c]`` to ``dst_first[k]`` of ``dst[c]``, on the device (all_hits.cl
+    move_runs; twin: :func:`move_runs_numpy`): the kept hits gathered from their slots
+    into the flat arrays, so that only they are read back. Queued on the context's
+    in-order queue; the caller reads ``dst`` after it."""
+    runs = len(count)
+    if runs == 0:
+        return
+    mem = ctx.memory
+    bufs = [mem.upload(np.ascontiguousarray(src_first, np.int64)),
+            mem.upload(np.ascontiguousarray(dst_first, np.int64)),
+            mem.upload(np.ascontiguousarray(count, np.int32))]
+    try:
+        launch = ctx.launch(runs, min_per_item=1024)
+        for s, d in zip(src, dst):
+            dev.run(ctx, KERNEL_FILE, "move_runs", launch, s, d, *bufs, runs, launch.per_item,
+                    defines={})
+    finally:   # the in-order queue runs the moves before any later use of these buffers
+        mem.free(*bufs)
+
+
+def move_runs_numpy(src: np.ndarray, dst: np.ndarray, src_first: np.ndarray,
+                    dst_first: np.ndarray, count: np.ndarray) -> None:
+    """Twin of :func:`move_runs` for one column: ``dst`` written in place."""
+    for a, b, n in zip(src_first, dst_first, count):
+        dst[b:b + n] = src[a:a + n]
 
 
 def _pick(rays: Rays, index: np.ndarray) -> Rays:
@@ -438,12 +480,13 @@ class _Pass:
     dtypes: tuple
 
     def run(self, rays: Rays, offsets: np.ndarray | None, counters: bool = False,
-            slots_only: bool = False
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, tuple[np.ndarray, ...]]:
+            slots_only: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
+                                               list[cl.Buffer]]:
         """Trace ``rays``: counting (``offsets`` None) or keeping ray i's nearest hits
         in slots ``[offsets[i], offsets[i + 1])``. Returns every ray's hit count, its
         flags, the counters (``counters``, counting only) and the kept columns (t, u, v,
-        prim, ...: the kernel's order)."""
+        prim, ...: the kernel's order) as device buffers of ``offsets[-1]`` words,
+        which the caller gives back to ``ctx.memory`` (none when counting)."""
         ctx, mem = self.ctx, self.ctx.memory
         m = len(rays)
         lo, hi, stride = rays.kernel_intervals()
@@ -474,11 +517,7 @@ class _Pass:
             counts = dev.from_device(ctx, bufs["counts"], np.int32, (m,))
             flags = dev.from_device(ctx, bufs["flags"], np.int32, (m,))
             work = (dev.from_device(ctx, bufs["work"], np.int32, (m, 4)) if counters else None)
-            cols = tuple(np.empty(size, t) for t in self.dtypes)
-            if size:
-                for col, buf in zip(cols, out):
-                    cl.enqueue_copy(ctx.queue, col, buf, is_blocking=False)
-                ctx.queue.finish()
-            return counts, flags, work, cols
+            kept, out = out, []
+            return counts, flags, work, kept
         finally:
             mem.free(*out, *bufs.values())

@@ -151,6 +151,7 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     # with and without SLOTS_ONLY), one stack size per bucket, the slab padding of the
     # device, through binary nodes and the device's wide records
     hit_passes = ({"COUNT": 1}, {"COUNT": 0}, {"COUNT": 0, "SLOTS_ONLY": 1})
+    add(all_hits.KERNEL_FILE, {})   # move_runs (no defines)
     for ctx in ctxs:
         for stack, hit_pass in itertools.product(traverse.STACK_BUCKETS, hit_passes):
             add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, **hit_pass,

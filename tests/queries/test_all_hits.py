@@ -4,6 +4,7 @@ crossing through a shared edge or vertex counted once, the same answer from ever
 from __future__ import annotations
 
 import numpy as np
+import pyopencl as cl
 import pytest
 
 import lbvh
@@ -252,6 +253,55 @@ def test_a_large_batch_samples_its_slots_and_answers_as_the_twin():
     assert np.array_equal(capped.total, want.counts)
     firsts = want.offsets[:-1][want.counts > 0]
     assert np.array_equal(capped.t[capped.offsets[:-1][want.counts > 0]], want.t[firsts])
+
+
+def test_slots_stay_within_the_largest_buffer_and_the_rest_is_traced_again(monkeypatch):
+    """first_slots never gives a batch more slots than the device's largest buffer holds
+    for all the columns together (read from the device, here made small); the rays past
+    their slots are traced again, and every hit is still the twin's."""
+    from lbvh.queries import all_hits as ah
+    v, f = dense_soup(600, 11)
+    bvh = lbvh.build(v, f)
+    n = 64 * ah.SAMPLE_EVERY + 5
+    o, d = random_rays(v, n, 12)
+    want = all_hits_brute(v, f, o, d, dtype=np.float32)
+    rays = ah._rays(o, d, 0.0, np.inf, "raise")
+    pass_ = ah._Pass(bvh.ctx, ah.KERNEL_FILE, "all_hits", ah.wide_head(bvh), {}, (0,) * 4)
+    free = ah.first_slots(pass_, rays, -1)
+    assert free > 2
+    monkeypatch.setattr(bvh.ctx.memory, "max_alloc", 4 * 4 * n * 2 + 15)
+    assert ah.first_slots(pass_, rays, -1) == 2
+    assert (want.counts > 2).sum() > n // 4      # many rays traced again
+    same(bvh.all_hits(o, d), want)
+
+
+def test_move_runs_equals_its_twin():
+    """all_hits.cl move_runs, the kept hits gathered from their slots on the device:
+    the numpy twin's words bit for bit, empty runs included, every column."""
+    from lbvh.queries.all_hits import move_runs, move_runs_numpy
+    ctx = lbvh.build(*dense_soup(20, 1)).ctx
+    rng = np.random.default_rng(5)
+    count = rng.integers(0, 9, 5000).astype(np.int32)
+    count[::7] = 0
+    src_first = np.arange(5000, dtype=np.int64) * 9
+    dst_first = np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64)
+    order = rng.permutation(5000)      # runs in any order, to any place
+    src_first, dst_first, count = src_first[order], dst_first[order], count[order]
+    columns = [rng.integers(0, 2**32, 5000 * 9, dtype=np.uint32) for _ in range(3)]
+    columns.append(rng.normal(size=5000 * 9).astype(np.float32).view(np.uint32))
+    total = int(count.sum())
+    src = [ctx.memory.upload(c) for c in columns]
+    dst = [ctx.memory.alloc(4 * total) for _ in columns]
+    try:
+        move_runs(ctx, src, dst, src_first, dst_first, count)
+        for c, buf in zip(columns, dst):
+            want = np.zeros(total, np.uint32)
+            move_runs_numpy(c, want, src_first, dst_first, count)
+            got = np.empty(total, np.uint32)
+            cl.enqueue_copy(ctx.queue, got, buf, is_blocking=True)
+            assert np.array_equal(got, want)
+    finally:
+        ctx.memory.free(*src, *dst)
 
 
 @pytest.mark.parametrize("clang", [0, 1], ids=["portable", "clang-builtins"])
