@@ -262,8 +262,9 @@ def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None,
     tree = target.tree
     wide = target.wide_records()
     if wide.packed and work is None:   # the counters count binary nodes (segment_work)
-        return run_passes(target.ctx, KERNEL_FILE, "all_hits", wide_head(target), stack_need(target),
-                          rays, batch, cap, defines=wide_defines(target.ctx, wide.width))
+        return run_passes(target.ctx, KERNEL_FILE, "all_hits", wide_head(target),
+                          stack_need(target), rays, batch, cap,
+                          defines=wide_defines(target.ctx, wide.width))
     head = (tree.nodes, tree.nodes, tree.prim_order, target.mesh.vertices_buf,
             target.slot_faces(), tree.root, tree.root, 0, tree.num_nodes)
     return run_passes(target.ctx, KERNEL_FILE, "all_hits", head, target.traversal_depth(), rays,
