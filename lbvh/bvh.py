@@ -226,8 +226,12 @@ class BVH:
     def _drop_slot_triangles(self) -> None:
         held, self._slot_triangles = self._slot_triangles, None
         if held is not None:
-            self._owned[:] = [b for b in self._owned if b is not held]
-            self.ctx.memory.free(held)
+            self._free_cached(held)
+
+    def _free_cached(self, buf: cl.Buffer) -> None:
+        """Give back one cache's buffer now (no longer dropped with this BVH)."""
+        self._owned[:] = [b for b in self._owned if b is not buf]
+        self.ctx.memory.free(buf)
 
     @dev.serialised
     def winding_moments(self) -> cl.Buffer:
@@ -246,8 +250,7 @@ class BVH:
     def _drop_moments(self) -> None:
         held, self._moments = self._moments, None
         if held is not None:
-            self._owned[:] = [b for b in self._owned if b is not held[1]]
-            self.ctx.memory.free(held[1])
+            self._free_cached(held[1])
 
     def traversal_depth(self) -> int:
         """The tree's depth, 0 for a root leaf (its topology never changes)."""
