@@ -25,7 +25,7 @@
  *   The scalar searches' branches were unpredictable (about half of them
  *   mispredicted) and PoCL does not vectorise a work-item's loop by itself:
  *   the lanes are 25-30% faster with 30-bit keys and 10-15% with 63-bit keys
- *   on the CPU device. A GPU work-item takes one group of LANES nodes.
+ *   on the CPU device. On a GPU a work-item takes one node (LANES 1, below).
  *
  * Numbering (docs/layout.md): internal node i is node i, leaf j is node n-1+j
  * and holds sorted slot j. Parent links are written by the parent. The far
@@ -35,6 +35,12 @@
  * both.
  *
  * KEY_BITS (define): 32 or 64.
+ * LANES (define, default 8): 8 for the explicit vectors above (the CPU), 1 for
+ * one node per work-item in plain scalar code (a GPU, where each work-item is
+ * a SIMT lane already). On an NVIDIA H200 the vector form emitted 2% of the
+ * bunny's nodes wrong, in lanes 2, 3, 6 and 7 only, while PoCL's are right:
+ * the scalar form is Figure 4 as written, with nothing for a GPU compiler to
+ * get wrong in eight-wide vectors it would split anyway.
  * WRITE_LEAVES (define, default 1): 0 leaves the leaf records alone; the
  * build's refit (refit.cl, KARRAS_RANGES) writes them whole with their boxes,
  * which spares a pass over half the node array (about 10% of the emission).
@@ -45,8 +51,97 @@
 #define WRITE_LEAVES 1
 #endif
 
+#ifndef LANES
 #define LANES 8
+#endif
+#if LANES != 8 && LANES != 1
+#error "LANES must be 8 or 1"
+#endif
 
+inline void set_children(__global int *node_words, int node, int a, int b) {
+    node_words[8 * node + 3] = a;  /* lower.w */
+    node_words[8 * node + 7] = b;  /* upper.w */
+}
+
+#if LANES == 1
+/* One node per work-item: Karras 2012, Figure 4, on the concatenation
+ * K = key . slot compared as the pair (key xor, slot xor), the same prefix
+ * comparisons as the vector form (x_j <= below_msb(x_m)). */
+#if KEY_BITS == 64
+typedef ulong key_t;
+#else
+typedef uint key_t;
+#endif
+typedef struct { key_t k; uint s; } kxor_t;  /* K_i xor K_j: at most 16 bytes */
+
+inline kxor_t xor_with(__global const key_t *keys, int i, int j) {
+    kxor_t x;
+    x.k = keys[i] ^ keys[j];
+    x.s = (uint)i ^ (uint)j;
+    return x;
+}
+inline kxor_t all_ones(void) {
+    kxor_t x;
+    x.k = ~(key_t)0;
+    x.s = ~0u;
+    return x;
+}
+/* 2^msb(x) - 1 of the pair taken as one number (key above slot). */
+inline kxor_t below_msb_pair(kxor_t x) {
+    if (x.k != 0) {
+        key_t k = x.k;
+        k |= k >> 1; k |= k >> 2; k |= k >> 4; k |= k >> 8; k |= k >> 16;
+#if KEY_BITS == 64
+        k |= k >> 32;
+#endif
+        x.k = k >> 1;
+        x.s = ~0u;
+    } else {
+        uint v = x.s;
+        v |= v >> 1; v |= v >> 2; v |= v >> 4; v |= v >> 8; v |= v >> 16;
+        x.s = v >> 1;
+    }
+    return x;
+}
+inline int pair_le(kxor_t a, kxor_t b) { return a.k < b.k || (a.k == b.k && a.s <= b.s); }
+inline int pair_lt(kxor_t a, kxor_t b) { return a.k < b.k || (a.k == b.k && a.s < b.s); }
+
+/* delta(i, j) > delta(i, m), given mask = below_msb(x_m); false outside [0, n). */
+inline int shares_more_one(__global const key_t *keys, int n, int i, int j, kxor_t mask) {
+    return j >= 0 && j < n && pair_le(xor_with(keys, i, j), mask);
+}
+
+inline void emit_node(__global const key_t *keys, int n, int i, __global int *node_words,
+                      __global int *parent) {
+    const kxor_t up = xor_with(keys, i, i + 1);
+    const kxor_t down = i == 0 ? all_ones() : xor_with(keys, i, i - 1);
+    const int d = pair_lt(up, down) ? 1 : -1;
+    /* delta_min = delta(i, i - d); node 0 has no left neighbour: every key shares more. */
+    const kxor_t mask_min = i == 0 ? all_ones() : below_msb_pair(d > 0 ? down : up);
+    int lmax = 2;
+    while (shares_more_one(keys, n, i, i + lmax * d, mask_min)) lmax <<= 1;
+    int l = lmax >> 1;  /* the first step of the binary search always succeeds */
+    for (int t = lmax >> 2; t >= 1; t >>= 1)
+        if (shares_more_one(keys, n, i, i + (l + t) * d, mask_min)) l += t;
+    const int j = i + l * d;
+    const kxor_t mask_node = below_msb_pair(xor_with(keys, i, j));
+    int s = 0, t = l;
+    while (t > 1) {
+        t = (t + 1) >> 1;
+        if (shares_more_one(keys, n, i, i + (s + t) * d, mask_node)) s += t;
+    }
+    const int gamma = i + s * d + (d < 0 ? -1 : 0);
+    const int first = j < i ? j : i, last = j < i ? i : j;
+    const int left = first == gamma ? (n - 1) + gamma : gamma;
+    const int right = last == gamma + 1 ? n + gamma : gamma + 1;
+    set_children(node_words, i, left, right);
+    node_words[8 * i] = j;
+    node_words[8 * i + 1] = 0;  /* the build's refit counts arrivals here */
+    parent[left] = i;
+    parent[right] = i;
+}
+
+#else  /* LANES == 8 */
 /* No value wider than 32 bytes crosses a function boundary, by construction.
  * PoCL 3.0 compiles with -Dinline= (every helper here is an ordinary function
  * that may stay out of line), and on a CPU newer than its LLVM (AMD Zen 4) it
@@ -205,11 +300,6 @@ inline int8 shares_more(__global const key_t *keys, int n, const prefix_t *ki, i
     return valid & prefix_le(&x, mask);
 }
 
-inline void set_children(__global int *node_words, int node, int a, int b) {
-    node_words[8 * node + 3] = a;  /* lower.w */
-    node_words[8 * node + 7] = b;  /* upper.w */
-}
-
 /* Figure 4 of Karras 2012 for internal nodes i0 .. i0+LANES-1 below `limit`
  * (lanes past it redo node limit-1 and write nothing). As in the figure less
  * its repeated evaluations: the first step of the binary search for l always
@@ -273,6 +363,8 @@ inline void emit_lanes(__global const key_t *keys, int n, int i0, int limit,
     }
 }
 
+#endif  /* LANES */
+
 /* Work-item items cover sorted slots [first, last): it writes those leaves'
  * records (WRITE_LEAVES) and emits the internal nodes of the same numbers
  * (all but n-1). */
@@ -287,6 +379,10 @@ __kernel void emit_hierarchy(__global const key_t *sorted_keys, const int n, con
 #endif
     if (first == 0 && last > 0) parent[0] = -1;
     const int limit = last < n - 1 ? last : n - 1;
+#if LANES == 1
+    for (int i = first; i < limit; ++i) emit_node(sorted_keys, n, i, node_words, parent);
+#else
     for (int i0 = first; i0 < limit; i0 += LANES)
         emit_lanes(sorted_keys, n, i0, limit, node_words, parent);
+#endif
 }

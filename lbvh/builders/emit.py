@@ -13,27 +13,45 @@ from ..device import Context, MemoryTracker, run
 from ..layout import NODE_DTYPE
 
 KERNEL_FILE = "emit.cl"
-#: internal nodes per vector in emit.cl (LANES)
+#: internal nodes per vector in emit.cl (LANES) on a CPU; a GPU's work-item takes one node
 LANES = 8
 
 
+def lanes_for(is_cpu: bool) -> int:
+    """emit.cl's LANES: eight nodes in explicit vectors on a CPU (PoCL does not
+    vectorise a work-item's loop), one node per work-item on a GPU, whose
+    compiler splits eight-wide vectors anyway (and got them wrong on an NVIDIA
+    H200: see emit.cl)."""
+    return LANES if is_cpu else 1
+
+
+def kernel_defines(key_bits: int, is_cpu: bool, write_leaves: bool = True) -> dict[str, int]:
+    """The -D defines kernels/emit.cl is compiled with."""
+    return {"KEY_BITS": key_bits, "WRITE_LEAVES": int(write_leaves), "LANES": lanes_for(is_cpu)}
+
+
 def emit_hierarchy(ctx: Context, mem: MemoryTracker, sorted_keys: cl.Buffer, n: int,
-                   key_bits: int, per_item: int | None = None, write_leaves: bool = True
-                   ) -> tuple[cl.Buffer, cl.Buffer, list[cl.Event]]:
+                   key_bits: int, per_item: int | None = None, write_leaves: bool = True,
+                   lanes: int | None = None) -> tuple[cl.Buffer, cl.Buffer, list[cl.Event]]:
     """Device node records (boxes not yet set) and parent links for ``2n - 1`` nodes.
 
     ``per_item`` forces the chunk length (tests); by default the launch picks
-    whole groups of ``LANES`` nodes, one group per work-item on a GPU. With
-    ``write_leaves=False`` the leaf records are left unwritten: the build's
-    refit (``refit_from_boxes(karras_ranges=True)``) writes them whole.
+    whole groups of ``LANES`` nodes on a CPU, one node per work-item on a GPU.
+    With ``write_leaves=False`` the leaf records are left unwritten: the
+    build's refit (``refit_from_boxes(karras_ranges=True)``) writes them whole.
+    ``lanes`` overrides :func:`lanes_for` (tests run both forms on any device).
     """
     num_nodes = 2 * n - 1
     nodes = mem.alloc(num_nodes * NODE_DTYPE.itemsize)
     parent = mem.alloc(num_nodes * 4)
-    launch = (ctx.launch(n, min_per_item=256, gpu_per_item=LANES, multiple=LANES)
+    defines = kernel_defines(key_bits, ctx.is_cpu, write_leaves)
+    if lanes is not None:
+        defines["LANES"] = lanes
+    launch = (ctx.launch(n, min_per_item=256, gpu_per_item=defines["LANES"],
+                         multiple=defines["LANES"])
               if per_item is None else ctx.launch_chunks(n, per_item))
     ev = run(ctx, KERNEL_FILE, "emit_hierarchy", launch, sorted_keys, n, launch.per_item, nodes,
-             parent, defines={"KEY_BITS": key_bits, "WRITE_LEAVES": int(write_leaves)})
+             parent, defines=defines)
     return nodes, parent, [ev]
 
 

@@ -98,7 +98,7 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     # emit_hierarchy: the build leaves the leaves to the refit; the default writes them
     write_leaves = sorted({int(_default(emit.emit_hierarchy, "write_leaves")), 0})
     for bits, leaves in itertools.product(key_bits, write_leaves):
-        add(emit.KERNEL_FILE, {"KEY_BITS": bits, "WRITE_LEAVES": leaves})
+        add(emit.KERNEL_FILE, emit.kernel_defines(bits, is_cpu, bool(leaves)))
     # sort.cl: key_bits (its default digit width) and the passes (the device's width)
     default_radix = _default(sort.kernel_defines, "radix_bits")
     for ctx in ctxs:
