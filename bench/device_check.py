@@ -6,7 +6,7 @@ command runs everything on the named device and writes what it found into one
 folder, to be committed with the session's work.
 
     .venv/bin/python bench/device_check.py --device nvidia [--out DIR] [--full]
-        [--tests-timeout 600] [--bench-timeout 300]
+        [--tests-timeout 600] [--bench-timeout 300] [--pytest-args '-n 12 -v']
 
 Steps, each in its own process with ``LBVH_DEVICE`` set to the device and a
 time limit; a step that fails or runs out of time is recorded and the next
@@ -30,6 +30,7 @@ import json
 import os
 import platform
 import re
+import shlex
 import subprocess
 import sys
 import time
@@ -89,6 +90,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tests-timeout", type=int, default=600)
     p.add_argument("--bench-timeout", type=int, default=300)
     p.add_argument("--skip-tests", action="store_true")
+    p.add_argument("--pytest-args", default="",
+                   help="more arguments for pytest, one string (say '-n 12 -v' on a machine "
+                        "with more cores: the suite's default is two workers)")
     args = p.parse_args(argv)
     if not args.device:
         p.error("name a device with --device (see `lbvh devices`)")
@@ -100,8 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     quick = [] if args.full else ["--quick"]
     steps = [("devices", [py, "-m", "lbvh.cli", "devices"], 300)]
     if not args.skip_tests:
-        steps.append(("tests", [py, "-m", "pytest", "-q", "-p", "no:cacheprovider"],
-                      args.tests_timeout))
+        steps.append(("tests", [py, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                                *shlex.split(args.pytest_args)], args.tests_timeout))
     steps += [
         ("bench_build", [py, "bench/bench_build.py", *quick, "--no-peers",
                          "--json", str(out / "bench_build.json")], args.bench_timeout),
