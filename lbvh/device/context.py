@@ -56,6 +56,13 @@ def all_devices() -> list[tuple[str, cl.Device]]:
     return found
 
 
+def _searchable(label: str) -> str:
+    """What a device name is looked for in: its label, and "pocl" for PoCL's devices
+    (whose platform calls itself "Portable Computing Language")."""
+    label = label.lower()
+    return label + " (pocl)" if label.startswith(_POCL_PLATFORM) else label
+
+
 def find_device(name: str | None = None) -> cl.Device:
     """Return the OpenCL device named by ``name``, ``$LBVH_DEVICE`` or PoCL's CPU device."""
     if name is None:
@@ -72,7 +79,7 @@ def find_device(name: str | None = None) -> cl.Device:
             "lbvh: PoCL's CPU device was not found (pip install pocl-binary-distribution); "
             f"pick one of these with device= or ${ENV_DEVICE}:\n  {listing}")
     pattern, _, index = name.partition("#")
-    matches = [dev for label, dev in devices if pattern.lower() in label.lower()]
+    matches = [dev for label, dev in devices if pattern.lower() in _searchable(label)]
     k = int(index) if index else 0
     if k >= len(matches):
         listing = "\n  ".join(label for label, _ in devices)
