@@ -70,6 +70,11 @@ LOCAL_BITS = 10
 #: Half of sort_buckets' private scratch on a CPU: buckets of up to 8192
 #: 32-bit-key records sort there (the CPU path's two passes of 30-bit keys).
 SCRATCH_BYTES = 1 << 16
+#: Keys per work-item on a GPU, at least: each work-item keeps 2^RADIX_BITS
+#: counters (4 bytes each), which one or two keys a work-item (as before) made
+#: 512 bytes a key, 560 bytes a triangle in the bunny's build on an NVIDIA H200
+#: (bench/results/device-nvidia-cuda-*); with 64, 16 bytes a key.
+GPU_MIN_KEYS = 64
 #: Fewer keys than this are sorted by plain LSD passes.
 MSD_MIN_KEYS = 1 << 16
 
@@ -161,7 +166,8 @@ class _Sort:
         self.kernels = {name: ctx.kernel(KERNEL_FILE, name, defines) for name in
                         ("digit_histogram", "scan_counts", "scatter", "scatter_records",
                          "sort_buckets")}
-        self.launch = ctx.launch(n, min_per_item=4096, gpu_per_item=max(1, -(-n // 65536)))
+        self.launch = ctx.launch(n, min_per_item=4096,
+                                 gpu_per_item=max(GPU_MIN_KEYS, -(-n // 65536)))
         self.counts = mem.alloc(4 * (1 << radix_bits) * self.launch.global_size, scratch=True)
         self.totals = mem.alloc(4 * (1 << radix_bits), scratch=True)
         #: every buffer this sort allocated
