@@ -6,7 +6,8 @@ command runs everything on the named device and writes what it found into one
 folder, to be committed with the session's work.
 
     .venv/bin/python bench/device_check.py --device nvidia [--out DIR] [--full]
-        [--tests-timeout 600] [--bench-timeout 300] [--pytest-args '-n 12 -v']
+        [--tests-timeout 600] [--bench-timeout 300] [--per-test-timeout 60]
+        [--pytest-args '-n 12']
 
 Steps, each in its own process with ``LBVH_DEVICE`` set to the device and a
 time limit; a step that fails or runs out of time is recorded and the next
@@ -26,6 +27,7 @@ every step passed.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import platform
@@ -90,6 +92,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tests-timeout", type=int, default=600)
     p.add_argument("--bench-timeout", type=int, default=300)
     p.add_argument("--skip-tests", action="store_true")
+    p.add_argument("--per-test-timeout", type=int, default=60,
+                   help="seconds a test may take where pytest-timeout is installed (0: none)")
     p.add_argument("--pytest-args", default="",
                    help="more arguments for pytest, one string (say '-n 12 -v' on a machine "
                         "with more cores: the suite's default is two workers)")
@@ -104,8 +108,14 @@ def main(argv: list[str] | None = None) -> int:
     quick = [] if args.full else ["--quick"]
     steps = [("devices", [py, "-m", "lbvh.cli", "devices"], 300)]
     if not args.skip_tests:
-        steps.append(("tests", [py, "-m", "pytest", "-q", "-p", "no:cacheprovider",
-                                *shlex.split(args.pytest_args)], args.tests_timeout))
+        # the failures' one-line reasons at the end, and (where pytest-timeout is
+        # installed) a limit per test, so that one slow test cannot keep the run from
+        # printing them before --tests-timeout
+        limit = (["--timeout", str(args.per_test_timeout)]
+                 if args.per_test_timeout and importlib.util.find_spec("pytest_timeout") else [])
+        steps.append(("tests", [py, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rfE",
+                                "--tb=line", *limit, *shlex.split(args.pytest_args)],
+                      args.tests_timeout))
     steps += [
         ("bench_build", [py, "bench/bench_build.py", *quick, "--no-peers",
                          "--json", str(out / "bench_build.json")], args.bench_timeout),

@@ -11,6 +11,12 @@
 #   mkdir -p .scn && cp -r ../shared/scenes/. .scn/     # the shared scenes travel too
 #   device run: bash bench/lent_gpu.sh [device_check.py arguments], carry [.whl, .scn]
 #
+# On the H200 (16 cores) the suite ran about 2,200 tests in 125 s on 15 workers, and the
+# quick benches took 4, 7 and 19 s: within a lease of 15 minutes, for example
+#   bash bench/lent_gpu.sh --out /tmp/dc --tests-timeout 300 --bench-timeout 60 \
+#       --pytest-args "-n 14"; tar czf $OUT/dc.tgz -C /tmp dc
+# ($OUT brings back 8 files at most: hence the archive).
+#
 # (pocl-binary-distribution is left out: its 58 MB wheel does not fit beside the rest.)
 set -u
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
