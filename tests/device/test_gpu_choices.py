@@ -1,12 +1,13 @@
-"""The GPU's code paths on PoCL: a context whose ``is_cpu`` is False takes every
-choice the package makes for a GPU (emit.cl's scalar form, the sort's small
-chunks, 4-wide records, work-groups of 64) while PoCL's CPU runs them. Its trees
-must be the CPU choices' trees node for node and its answers the same.
+"""The GPU's code paths against PoCL's CPU. Where the tests' device (``LBVH_DEVICE``)
+is a GPU, that GPU; elsewhere PoCL's CPU device in a context whose ``is_cpu`` is
+False, so that it takes every choice the package makes for a GPU (emit.cl's
+scalar form, the sort's small chunks, 4-wide records, work-groups of 64). Its
+trees must be the CPU's node for node and its answers the same.
 
-This cannot catch a GPU compiler's own mistakes (the NVIDIA H200's run that
-found the emission's vector form wrong: bench/results/device-nvidia-cuda-*);
-bench/device_check.py on the GPU itself does. It keeps the GPU's paths, which
-CI never runs on a GPU, from drifting from the CPU's.
+On PoCL alone this cannot catch a GPU compiler's own mistakes (the NVIDIA H200's
+run found the emission's vector form wrong there: bench/results/device-nvidia-cuda-*);
+on a GPU with PoCL beside it, it does. It keeps the GPU's paths, which CI never
+runs on a GPU, from drifting from the CPU's.
 """
 from __future__ import annotations
 
@@ -23,10 +24,24 @@ SCENES = {"teapot": lambda: shipped_mesh("teapot.obj"),
 
 
 @pytest.fixture(scope="module")
-def gpu_ctx():
-    ctx = dev.Context(dev.find_device(None))   # its own program cache
-    ctx.is_cpu = False
-    return ctx
+def cpu_ctx(ctx):
+    """PoCL's CPU device with the CPU's choices (the tests' context where it is PoCL)."""
+    if ctx.is_cpu:
+        return ctx
+    try:
+        return dev.get_context(dev.find_device("pocl"))
+    except dev.DeviceError:
+        pytest.skip(f"{ctx.name} is a GPU and there is no PoCL CPU device to compare it with")
+
+
+@pytest.fixture(scope="module")
+def gpu_ctx(ctx):
+    """The tests' device where it is a GPU, else PoCL's CPU taking the GPU's choices."""
+    if not ctx.is_cpu:
+        return ctx
+    gpu = dev.Context(dev.find_device(None))   # its own program cache
+    gpu.is_cpu = False
+    return gpu
 
 
 def _inputs(v, n_rays=4000, n_points=2000):
@@ -41,9 +56,9 @@ def _inputs(v, n_rays=4000, n_points=2000):
 
 @pytest.mark.parametrize("scene", sorted(SCENES))
 @pytest.mark.parametrize("key_bits", [30, 63])
-def test_gpu_choices_build_the_cpu_choices_tree(ctx, gpu_ctx, scene, key_bits):
+def test_gpu_choices_build_the_cpu_choices_tree(cpu_ctx, gpu_ctx, scene, key_bits):
     v, f = SCENES[scene]()
-    cpu = lbvh.build(v, f, device=ctx, key_bits=key_bits)
+    cpu = lbvh.build(v, f, device=cpu_ctx, key_bits=key_bits)
     gpu = lbvh.build(v, f, device=gpu_ctx, key_bits=key_bits)
     gpu.validate()
     assert np.array_equal(gpu.nodes.view(np.int32), cpu.nodes.view(np.int32))
@@ -53,9 +68,9 @@ def test_gpu_choices_build_the_cpu_choices_tree(ctx, gpu_ctx, scene, key_bits):
 
 
 @pytest.mark.parametrize("scene", sorted(SCENES))
-def test_gpu_choices_answer_as_the_cpu_choices(ctx, gpu_ctx, scene):
+def test_gpu_choices_answer_as_the_cpu_choices(cpu_ctx, gpu_ctx, scene):
     v, f = SCENES[scene]()
-    cpu = lbvh.build(v, f, device=ctx)
+    cpu = lbvh.build(v, f, device=cpu_ctx)
     gpu = lbvh.build(v, f, device=gpu_ctx)
     o, d, p, size = _inputs(v)
     a, b = gpu.intersect(o, d), cpu.intersect(o, d)
