@@ -58,6 +58,12 @@
 #error "LANES must be 8 or 1"
 #endif
 
+#if KEY_BITS == 64
+typedef ulong key_t;
+#else
+typedef uint key_t;
+#endif
+
 inline void set_children(__global int *node_words, int node, int a, int b) {
     node_words[8 * node + 3] = a;  /* lower.w */
     node_words[8 * node + 7] = b;  /* upper.w */
@@ -67,11 +73,6 @@ inline void set_children(__global int *node_words, int node, int a, int b) {
 /* One node per work-item: Karras 2012, Figure 4, on the concatenation
  * K = key . slot compared as the pair (key xor, slot xor), the same prefix
  * comparisons as the vector form (x_j <= below_msb(x_m)). */
-#if KEY_BITS == 64
-typedef ulong key_t;
-#else
-typedef uint key_t;
-#endif
 typedef struct { key_t k; uint s; } kxor_t;  /* K_i xor K_j: at most 16 bytes */
 
 inline kxor_t xor_with(__global const key_t *keys, int i, int j) {
@@ -177,7 +178,6 @@ inline int any_lane(int8 m) {
  * place or into the first argument. gather(p, keys, j): p = K_j.
  * or_all_ones(p, m): all ones where m is set, the largest xor ("no neighbour"). */
 #if KEY_BITS == 64
-typedef ulong key_t;
 typedef struct { ulong4 lo, hi; uint8 slot; } prefix_t;  /* 96 bits, compared as (key, slot) */
 inline void gather(prefix_t *p, __global const key_t *keys, int8 j) {
     p->lo = (ulong4)(keys[j.s0], keys[j.s1], keys[j.s2], keys[j.s3]);
@@ -227,7 +227,6 @@ inline void or_all_ones(prefix_t *p, int8 m) {
     p->slot |= as_uint8(m);
 }
 #else
-typedef uint key_t;
 typedef struct { ulong4 lo, hi; } prefix_t;  /* key << 32 | slot */
 inline void concat(prefix_t *p, uint8 k, int8 j) {
     p->lo = (convert_ulong4(k.lo) << 32) | convert_ulong4(as_uint4(j.lo));

@@ -30,6 +30,16 @@ def _mesh(path: str):
     return v, f
 
 
+def pocl_cpu_device(why: str):
+    """PoCL's CPU device, for tests whose device (LBVH_DEVICE) is a GPU but which need
+    the CPU's choices on a CPU; skips, saying ``why``, where there is none."""
+    from lbvh import device as dev
+    try:
+        return dev.find_device("pocl")
+    except dev.DeviceError:
+        pytest.skip(f"no PoCL CPU device beside the GPU: {why}")
+
+
 def shipped_mesh(name: str):
     return _mesh(str(SHIPPED_SCENES / name))
 

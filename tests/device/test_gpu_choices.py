@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import lbvh
-from conftest import random_soup, shipped_mesh
+from conftest import pocl_cpu_device, random_soup, shipped_mesh
 from lbvh import device as dev
 from lbvh.verification.error_bound import WINDING_BOUND
 
@@ -28,10 +28,7 @@ def cpu_ctx(ctx):
     """PoCL's CPU device with the CPU's choices (the tests' context where it is PoCL)."""
     if ctx.is_cpu:
         return ctx
-    try:
-        return dev.get_context(dev.find_device("pocl"))
-    except dev.DeviceError:
-        pytest.skip(f"{ctx.name} is a GPU and there is no PoCL CPU device to compare it with")
+    return dev.get_context(pocl_cpu_device(f"{ctx.name} is compared with PoCL's CPU"))
 
 
 @pytest.fixture(scope="module")
