@@ -6,8 +6,9 @@
  * towards the root. At each parent an atomic counter tells whether the sibling
  * has already arrived: the first arrival stops, the second (which then knows
  * that both children's boxes are written) computes the parent's box and goes
- * on. min and max are exact, so the result does not depend on which walk
- * arrives second: it is bit-identical to a serial refit.
+ * on. min and max are exact and the leaf boxes hold no -0.0 (leaf_box), so
+ * the result does not depend on which walk arrives second: it is
+ * bit-identical to a serial refit.
  *
  * Memory ordering: see second_arrival() in common.h; the sibling's box is
  * read through a volatile pointer so that no value cached before the atomic
@@ -68,7 +69,7 @@ inline int inside_chunk(__global const int *node_words, int p, int first, int la
 #endif
 
 /* The union of the boxes of slots [slot, slot + count), prefetching the box
- * PREFETCH_AHEAD slots on (last_slot: the highest slot). */
+ * PREFETCH_AHEAD slots on (last_slot: the highest slot), with +0.0 for -0.0. */
 inline void leaf_box(__global const float4 *boxes, __global const int *prim_order, int slot,
                      int count, int last_slot, float3 *lo, float3 *hi) {
     if (slot + PREFETCH_AHEAD <= last_slot)
@@ -80,8 +81,11 @@ inline void leaf_box(__global const float4 *boxes, __global const int *prim_orde
         l = min3(l, boxes[2 * t].xyz);
         h = max3(h, boxes[2 * t + 1].xyz);
     }
-    *lo = l;
-    *hi = h;
+    /* -0.0 + 0.0 = +0.0: min3 and max3 keep whichever of -0 and +0 comes first, so
+     * with a signed zero in the leaves a node's box would depend on which child's
+     * walk arrived second (the teapot's lower.z flipped sign between builds). */
+    *lo = l + (float3)(0.0f);
+    *hi = h + (float3)(0.0f);
 }
 
 /* The walk from `node` (box lo, hi) towards the root, as far as this walk is

@@ -79,8 +79,9 @@ def refit_numpy(nodes: np.ndarray, parent: np.ndarray, root: int, prim_order: np
                 vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Serial twin: boxes of every node over the same topology, deepest level first.
 
-    Returns ``lower, upper`` ``float32 (num_nodes, 3)``. min/max are exact, so
-    the device refit must match this bit for bit.
+    Returns ``lower, upper`` ``float32 (num_nodes, 3)``. min/max are exact and
+    the leaf boxes hold +0.0 for -0.0, so the device refit must match this bit
+    for bit, the sign of zero included.
     """
     tlo, thi = triangle_boxes_numpy(vertices, faces)
     tlo, thi = tlo[prim_order], thi[prim_order]
@@ -92,8 +93,9 @@ def refit_numpy(nodes: np.ndarray, parent: np.ndarray, root: int, prim_order: np
     leaves = np.flatnonzero(leaf)
     by_first = leaves[np.argsort(ranges[leaves, 0], kind="stable")]
     starts = ranges[by_first, 0]
-    lower[by_first] = np.minimum.reduceat(tlo, starts, axis=0)
-    upper[by_first] = np.maximum.reduceat(thi, starts, axis=0)
+    # + 0: -0.0 becomes +0.0, as in refit.cl's leaf_box
+    lower[by_first] = np.minimum.reduceat(tlo, starts, axis=0) + np.float32(0)
+    upper[by_first] = np.maximum.reduceat(thi, starts, axis=0) + np.float32(0)
     children = children_of(nodes)
     depth = node_depths(parent, root)
     internal = np.flatnonzero(~leaf)
