@@ -69,6 +69,9 @@ class Env:
             (t / f"truncated.{ext}").write_bytes(data[: len(data) // 2])
         (t / "empty.glb").write_bytes(b"")
         (t / "garbage.stl").write_bytes(bytes(range(256)) * 2)
+        mesh.export(t / "ascii.stl", file_type="stl_ascii")
+        text = (t / "ascii.stl").read_bytes()
+        (t / "truncated_ascii.stl").write_bytes(text[: len(text) // 2])
         obj = (t / "good.obj").read_text()
         (t / "between_lines.obj").write_text("".join(obj.splitlines(True)[:-3]))
         tri = "v 0 0 0\nv 1 0 0\nv 0 1 0\n"
@@ -449,6 +452,10 @@ ROWS: list[Row] = [
            ValueError, "truncated.stl: not a valid"),
     _scene("garbage.stl", "STL of random bytes",
            ValueError, "garbage.stl: not a valid"),
+    _scene("truncated_ascii.stl", "ASCII STL truncated",
+           ValueError, "truncated_ascii.stl: not a valid STL file"),
+    _scene("ascii.stl", "ASCII STL", None),
+    _scene("good.stl", "binary STL", None),
     _scene("nan.obj", "OBJ with a NaN coordinate", ValueError, "nan.obj: vertices: vertex 1"),
     _scene("inf.obj", "OBJ with an infinite coordinate",
            ValueError, "inf.obj: vertices: vertex 2"),

@@ -98,6 +98,34 @@ def _obj_index_problem(path: Path) -> str | None:
     return None
 
 
+def _stl_problem(path: Path) -> str | None:
+    """Why ``path`` is neither a binary nor an ASCII STL file, or ``None``.
+
+    Checked before trimesh reads it, since what trimesh makes of a broken STL
+    depends on the optional modules installed (with charset_normalizer it decodes
+    any bytes as text and finds no mesh; without, it raises ImportError).
+    """
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(84)
+        if size >= 84:
+            count = int.from_bytes(head[80:84], "little")
+            if size == 84 + 50 * count:
+                return None                     # binary: header, count, 50 bytes a triangle
+        f.seek(max(0, size - 1024))
+        tail = f.read()
+    ascii = head.lstrip().lower().startswith(b"solid")
+    if ascii and b"endsolid" in tail.lower():
+        return None                             # ASCII: "solid name" ... "endsolid name"
+    if ascii:
+        return (f"not a valid STL file ({size:,} bytes): it begins as ASCII STL ('solid') "
+                f"but does not end with 'endsolid' (cut short?)")
+    binary = (f"as binary STL its header's count of {count:,} triangles needs "
+              f"{84 + 50 * count:,} bytes" if size >= 84
+              else "too short for binary STL's 84-byte header")
+    return f"not a valid STL file ({size:,} bytes): not ASCII STL ('solid' ...), and {binary}"
+
+
 def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     """Read a mesh file with trimesh and return validated ``(vertices, faces)``: the
     meshes of a file of several (a glTF scene) flattened into one."""
@@ -121,11 +149,15 @@ def _load(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, Any]:
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise ValueError(f"{path}: unknown mesh format {path.suffix!r} "
                          f"(expected one of {', '.join(sorted(MESH_SUFFIXES))})")
+    problem = _stl_problem(path) if path.suffix.lower() == ".stl" else None
+    if problem:
+        raise ValueError(f"{path}: {problem}")
     try:
         loaded = trimesh.load(str(path), process=False, force=None)
     except ImportError as exc:
         # trimesh reaches for optional modules (charset_normalizer to decode
-        # text) only once the file failed to parse as what its suffix says
+        # text) only once the file failed to parse as what its suffix says; a
+        # broken STL is refused before (_stl_problem)
         raise ValueError(f"{path}: not a valid {path.suffix.lstrip('.').upper()} file "
                          f"(trimesh could not parse it; it wanted the optional module "
                          f"{exc.name!r} for a last try)") from None
