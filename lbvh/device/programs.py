@@ -25,6 +25,21 @@ from .errors import DeviceError
 # Set (to anything) to print every non-empty compiler log to stderr.
 ENV_BUILD_LOG = "LBVH_BUILD_LOG"
 
+# Lines a driver writes into the build log of every kernel whatever its source, so
+# not findings about ours. NVIDIA's drivers since 550 note of each __kernel
+# "Function k is a kernel, so overriding noinline attribute" (pyopencl #756).
+DRIVER_NOTES = (re.compile(r"Function \w+ is a kernel, so overriding noinline attribute"),)
+
+
+def log_findings(log: str) -> list[str]:
+    """The lines of a build log that speak of a warning or an error, less
+    :data:`DRIVER_NOTES`. Other compilers write progress there ("Compilation
+    started"), which is not a finding either."""
+    return [line for line in log.splitlines()
+            if any(word in line.lower() for word in ("warning", "error"))
+            and not any(note.search(line) for note in DRIVER_NOTES)]
+
+
 def kernels_dir() -> Path:
     """Folder holding the OpenCL sources.
 
@@ -196,8 +211,6 @@ def _build_log(prog, dev: cl.Device) -> str:
         return prog.get_build_info(dev, cl.program_build_info.LOG) or ""
     except cl.Error:
         return ""
-
-
 
 
 def build_options(device: cl.Device, defines: dict[str, int | str]) -> list[str]:

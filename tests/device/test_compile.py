@@ -41,10 +41,20 @@ def test_includes_are_expanded_and_options_hold_no_path(sources, ctx):
     prog = ctx._compile("good.cl", {})
     assert prog.get_info(cl.program_info.KERNEL_NAMES) == "k"
     # no diagnostic: PoCL's log of a clean source is empty; other compilers (Intel's
-    # CPU runtime) write their progress there, "Compilation started" and the like
+    # CPU runtime) write their progress there, "Compilation started" and the like,
+    # and NVIDIA's a note of each kernel (programs.DRIVER_NOTES)
     log = ctx.build_log("good.cl")
-    assert not any(word in line.lower() for line in log.splitlines()
-                   for word in ("warning", "error")), log
+    assert not programs.log_findings(log), log
+
+
+def test_log_findings_keep_warnings_and_drop_only_the_drivers_notes():
+    nvidia = ("(): Warning: Function k is a kernel, so overriding noinline attribute. "
+              "The function may be inlined when called.")
+    warning = "<kernel>:3:5: warning: unused variable 'x'"
+    log = "\n".join(["Compilation started", nvidia, warning, "Compilation done"])
+    assert programs.log_findings(log) == [warning]
+    assert programs.log_findings("error: no_such_function") == ["error: no_such_function"]
+    assert programs.log_findings("") == []
 
 
 def test_a_compile_error_carries_the_log_file_and_options(sources, ctx):
