@@ -293,8 +293,12 @@ def test_global_order_gives_the_same_hits(name, kind):
     assert np.array_equal(got.t, ordered.t)
     tie = got.prim != ordered.prim
     if tie.any():
+        # the other triangle is hit at the same t within the stated bound; a relative
+        # tolerance alone fails at t near 0 (a ray leaving a surface: on the H200 the
+        # device's t was 1.2e-8 where float64 gives -5.7e-17)
         t_other, _, _ = hits_on(v, f, o[tie], d[tie], ordered.prim[tie])
-        assert np.allclose(t_other, got.t[tie], rtol=1e-6, atol=0)
+        bound = t_bound(v, f, o[tie], d[tie], got.t[tie].astype(np.float64), ordered.prim[tie])
+        assert (np.abs(t_other - got.t[tie]) <= bound).all()
     # best first never tests more triangles than it must: a node is entered only when no
     # pending node is nearer, so it enters no node that the ordered walk skips for good
     assert got.tris_tested.sum() <= ordered.tris_tested.sum() * 1.05 + 10
