@@ -18,6 +18,9 @@
 # ($OUT brings back 8 files at most: hence the archive).
 #
 # (pocl-binary-distribution is left out: its 58 MB wheel does not fit beside the rest.)
+#
+# `bash bench/lent_gpu.sh --run CMD...` does the same set-up, then runs CMD instead of the
+# device check (say a bench with --device nvidia, or a few tests with --tb=long).
 set -u
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
     --target /tmp/site .whl/*.whl || { echo "lent_gpu: the carried wheels did not install"; exit 1; }
@@ -28,4 +31,5 @@ lib=$(ls /usr/local/nvidia/lib64/libnvidia-opencl.so.1 /usr/lib/x86_64-linux-gnu
 mkdir -p /etc/OpenCL/vendors && echo "$lib" > /etc/OpenCL/vendors/nvidia.icd
 export OCL_ICD_VENDORS=/etc/OpenCL/vendors
 if [ -d .scn ]; then mkdir -p ../shared && rm -rf ../shared/scenes && cp -r .scn ../shared/scenes; fi
+if [ "${1:-}" = --run ]; then shift; "$@"; exit $?; fi
 python3 bench/device_check.py --device nvidia "$@"
