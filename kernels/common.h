@@ -48,15 +48,33 @@ inline int chunk_last(int gid, int per_item, int count) {
     return l < count ? (int)l : count;
 }
 
+/* A fence over the whole device's global memory. OpenCL 1.2's mem_fence
+ * orders a work-item's accesses as seen from its own work-group only: enough
+ * on a CPU, whose memory is coherent, but on NVIDIA's GPUs it is a work-group
+ * fence, so there PTX's membar.gl stands in (DEVICE_FENCE=1, set by the host
+ * for every kernel: lbvh.device.programs.device_fence). */
+#ifndef DEVICE_FENCE
+#define DEVICE_FENCE 0
+#endif
+inline void device_fence(void) {
+#if DEVICE_FENCE == 1
+    __asm__ volatile("membar.gl;" ::: "memory");
+#else
+    mem_fence(CLK_GLOBAL_MEM_FENCE);
+#endif
+}
+
 /* Bottom-up walks (Karras 2012, section 4): each walk that reaches parent p
  * bumps p's arrival counter; only the second arrival goes on, knowing that the
  * sibling's results are written. The fence before the atomic publishes this
  * walk's stores (release), the fence after it orders the sibling reads that
- * follow (acquire); OpenCL 1.2 atomics alone do not order plain memory. */
+ * follow (acquire); OpenCL 1.2 atomics alone do not order plain memory, and
+ * the walks of a node's two children may run in different work-groups, hence
+ * a device-wide fence. */
 inline int second_arrival(__global int *arrivals, int p) {
-    mem_fence(CLK_GLOBAL_MEM_FENCE);
+    device_fence();
     const int second = atomic_inc(&arrivals[p]) != 0;
-    mem_fence(CLK_GLOBAL_MEM_FENCE);
+    device_fence();
     return second;
 }
 

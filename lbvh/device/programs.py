@@ -213,8 +213,26 @@ def _build_log(prog, dev: cl.Device) -> str:
         return ""
 
 
+# common.h's device_fence(), which the bottom-up walks (refit, winding moments,
+# treelets, collapse) put around the atomic that tells the second walk at a node
+# that its sibling's results are written. OpenCL 1.2's mem_fence orders memory
+# within a work-group only; that suffices on a CPU (one coherent memory) but not on
+# NVIDIA's GPUs, where it is a work-group fence (Futhark issue 734): on the H200 a
+# build of 4M triangles made a node box that missed a child's. There the fence is
+# PTX's membar.gl, device-wide.
+FENCE_MEM_FENCE, FENCE_NVIDIA = 0, 1
+
+
+def device_fence(device: cl.Device) -> int:
+    """The ``DEVICE_FENCE`` define for ``device`` (``FENCE_*`` above)."""
+    gpu = not device.type & cl.device_type.CPU
+    return FENCE_NVIDIA if gpu and "nvidia" in device.vendor.lower() else FENCE_MEM_FENCE
+
+
 def build_options(device: cl.Device, defines: dict[str, int | str]) -> list[str]:
-    """The options a kernel file is compiled with: no path (see :func:`kernel_source`)."""
+    """The options a kernel file is compiled with: no path (see :func:`kernel_source`).
+    Besides ``defines``, every file gets the device's ``DEVICE_FENCE``."""
+    defines = {"DEVICE_FENCE": device_fence(device), **defines}
     options = ["-cl-std=CL1.2"] + [f"-D{k}={v}" for k, v in sorted(defines.items())]
     if device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT:
         # The Morton quantisation divides; correctly rounded division keeps it
