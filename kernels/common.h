@@ -51,14 +51,20 @@ inline int chunk_last(int gid, int per_item, int count) {
 /* A fence over the whole device's global memory. OpenCL 1.2's mem_fence
  * orders a work-item's accesses as seen from its own work-group only: enough
  * on a CPU, whose memory is coherent, but on NVIDIA's GPUs it is a work-group
- * fence, so there PTX's membar.gl stands in (DEVICE_FENCE=1, set by the host
- * for every kernel: lbvh.device.programs.device_fence). */
+ * fence. DEVICE_FENCE, set by the host for every kernel
+ * (lbvh.device.programs.device_fence):
+ *   0  mem_fence (CPUs)
+ *   1  PTX's membar.gl (NVIDIA)
+ *   2  OpenCL C 2.0/3.0's fence at device scope (other GPUs that have it;
+ *      the host then compiles as OpenCL C 2.0 or 3.0). */
 #ifndef DEVICE_FENCE
 #define DEVICE_FENCE 0
 #endif
 inline void device_fence(void) {
 #if DEVICE_FENCE == 1
     __asm__ volatile("membar.gl;" ::: "memory");
+#elif DEVICE_FENCE == 2
+    atomic_work_item_fence(CLK_GLOBAL_MEM_FENCE, memory_order_acq_rel, memory_scope_device);
 #else
     mem_fence(CLK_GLOBAL_MEM_FENCE);
 #endif

@@ -217,23 +217,47 @@ def _build_log(prog, dev: cl.Device) -> str:
 # treelets, collapse) put around the atomic that tells the second walk at a node
 # that its sibling's results are written. OpenCL 1.2's mem_fence orders memory
 # within a work-group only; that suffices on a CPU (one coherent memory) but not on
-# NVIDIA's GPUs, where it is a work-group fence (Futhark issue 734): on the H200 a
-# build of 4M triangles made a node box that missed a child's. There the fence is
-# PTX's membar.gl, device-wide.
-FENCE_MEM_FENCE, FENCE_NVIDIA = 0, 1
+# NVIDIA's GPUs, where it is a work-group fence (Futhark issue 734): on the H200,
+# builds of 4M triangles made node boxes that missed part of a child. There the
+# fence is PTX's membar.gl; on other GPUs, OpenCL C 2.0/3.0's device-scope fence
+# where the device has it. A GPU with neither keeps mem_fence, which OpenCL 1.2
+# does not promise to reach other work-groups.
+FENCE_MEM_FENCE, FENCE_NVIDIA, FENCE_DEVICE_SCOPE = 0, 1, 2
+# OpenCL C 3.0's optional features that memory_scope_device with acq_rel needs
+_SCOPE_FEATURES = {"__opencl_c_atomic_scope_device", "__opencl_c_atomic_order_acq_rel"}
+_CL_DEVICE_OPENCL_C_FEATURES = 0x106F
+
+
+def device_scope_std(device: cl.Device) -> str | None:
+    """The ``-cl-std`` that gives ``device`` OpenCL C's device-scope fences
+    (``"CL3.0"`` or ``"CL2.0"``), or ``None``."""
+    try:
+        features = {f.name for f in device.get_info(_CL_DEVICE_OPENCL_C_FEATURES)}
+    except (cl.Error, AttributeError, TypeError, ValueError):
+        # before OpenCL 3.0 the query does not exist, and OpenCL C 2.0 has the fences
+        match = re.match(r"OpenCL C (\d+)\.(\d+)", device.opencl_c_version or "")
+        return "CL2.0" if match and (int(match[1]), int(match[2])) >= (2, 0) else None
+    # OpenCL 3.0: the fences are optional features of OpenCL C 3.0
+    return "CL3.0" if _SCOPE_FEATURES <= features else None
 
 
 def device_fence(device: cl.Device) -> int:
     """The ``DEVICE_FENCE`` define for ``device`` (``FENCE_*`` above)."""
-    gpu = not device.type & cl.device_type.CPU
-    return FENCE_NVIDIA if gpu and "nvidia" in device.vendor.lower() else FENCE_MEM_FENCE
+    if device.type & cl.device_type.CPU:
+        return FENCE_MEM_FENCE
+    if "nvidia" in device.vendor.lower():
+        return FENCE_NVIDIA
+    return FENCE_DEVICE_SCOPE if device_scope_std(device) else FENCE_MEM_FENCE
 
 
 def build_options(device: cl.Device, defines: dict[str, int | str]) -> list[str]:
     """The options a kernel file is compiled with: no path (see :func:`kernel_source`).
-    Besides ``defines``, every file gets the device's ``DEVICE_FENCE``."""
-    defines = {"DEVICE_FENCE": device_fence(device), **defines}
-    options = ["-cl-std=CL1.2"] + [f"-D{k}={v}" for k, v in sorted(defines.items())]
+    Besides ``defines``, every file gets the device's ``DEVICE_FENCE``; OpenCL C 1.2
+    but where that fence needs OpenCL C 2.0 or 3.0."""
+    fence = device_fence(device)
+    defines = {"DEVICE_FENCE": fence, **defines}
+    std = device_scope_std(device) if fence == FENCE_DEVICE_SCOPE else "CL1.2"
+    options = [f"-cl-std={std}"] + [f"-D{k}={v}" for k, v in sorted(defines.items())]
     if device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT:
         # The Morton quantisation divides; correctly rounded division keeps it
         # bit-identical to the numpy twin on devices that offer it.

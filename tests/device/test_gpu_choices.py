@@ -117,17 +117,63 @@ def test_bottom_up_walks_across_work_groups_equal_their_twins(gpu_ctx):
                                f"(first: node {int(np.flatnonzero(bad)[0])})")
 
 
-def test_device_fence_is_the_whole_device_on_nvidia_gpus():
-    """The choice of common.h's DEVICE_FENCE by device kind and vendor (the kernels'
-    side of it is checked above, on the device itself)."""
-    class Device:                       # the two fields device_fence reads
-        def __init__(self, kind, vendor):
-            self.type, self.vendor = kind, vendor
-    assert programs.device_fence(Device(cl.device_type.GPU, "NVIDIA Corporation")) == programs.FENCE_NVIDIA
-    assert programs.device_fence(Device(cl.device_type.CPU, "GenuineIntel")) == programs.FENCE_MEM_FENCE
-    assert programs.device_fence(Device(cl.device_type.CPU, "NVIDIA Corporation")) == programs.FENCE_MEM_FENCE
+def test_device_fence_reaches_the_whole_device_on_gpus_that_have_one():
+    """The choice of common.h's DEVICE_FENCE by device kind, vendor and OpenCL C
+    (the kernels' side of it is checked on the device itself, above and below)."""
+    class Feature:
+        def __init__(self, name):
+            self.name = name
+
+    class Device:                       # the fields build_options reads
+        def __init__(self, kind, vendor, c_version="OpenCL C 1.2", features=None):
+            self.type, self.vendor, self.opencl_c_version = kind, vendor, c_version
+            self.single_fp_config = 0
+            self.features = None if features is None else [Feature(n) for n in features]
+
+        def get_info(self, what):        # OpenCL C's features: OpenCL 3.0 devices only
+            if self.features is None:
+                raise ValueError("no such query before OpenCL 3.0")
+            return self.features
+
+    gpu, cpu = cl.device_type.GPU, cl.device_type.CPU
+    scoped = ("__opencl_c_atomic_scope_device", "__opencl_c_atomic_order_acq_rel")
+    assert programs.device_fence(Device(gpu, "NVIDIA Corporation")) == programs.FENCE_NVIDIA
+    assert programs.device_fence(Device(cpu, "NVIDIA Corporation")) == programs.FENCE_MEM_FENCE
+    assert programs.device_fence(Device(cpu, "GenuineIntel", features=scoped)) == programs.FENCE_MEM_FENCE
+    amd20 = Device(gpu, "Advanced Micro Devices, Inc.", "OpenCL C 2.0")
+    intel30 = Device(gpu, "Intel(R) Corporation", "OpenCL C 1.2", scoped)
+    for device, std in ((amd20, "CL2.0"), (intel30, "CL3.0")):
+        assert programs.device_fence(device) == programs.FENCE_DEVICE_SCOPE
+        assert programs.build_options(device, {})[0] == f"-cl-std={std}"
+    # OpenCL 3.0 without both features, or OpenCL C 1.2 alone: no device-scope fence
+    for plain in (Device(gpu, "Some GPU", "OpenCL C 3.0", scoped[:1]),
+                  Device(gpu, "Some GPU", "OpenCL C 1.2")):
+        assert programs.device_scope_std(plain) is None
+        assert programs.device_fence(plain) == programs.FENCE_MEM_FENCE
+        assert programs.build_options(plain, {})[0] == "-cl-std=CL1.2"
 
 
 def test_every_kernel_is_compiled_with_the_devices_fence(ctx):
     options = ctx.build_options({"A": 1})
     assert f"-DDEVICE_FENCE={programs.device_fence(ctx.device)}" in options and "-DA=1" in options
+
+
+def test_the_device_scope_fence_gives_the_same_trees(cpu_ctx, monkeypatch):
+    """DEVICE_FENCE=2 (OpenCL C 3.0's device-scope fence, for GPUs other than
+    NVIDIA's), compiled as OpenCL C 3.0 where PoCL has the features: the trees of
+    every bottom-up walk (refit, treelets, collapse) and the winding moments equal
+    those of the CPU's choices."""
+    if programs.device_scope_std(cpu_ctx.device) is None:
+        pytest.skip(f"{cpu_ctx.name} has no device-scope fence (OpenCL C 2.0, or 3.0's features)")
+    monkeypatch.setattr(programs, "device_fence", lambda device: programs.FENCE_DEVICE_SCOPE)
+    scoped = dev.Context(cpu_ctx.device)          # its own programs, compiled with the fence
+    assert "-DDEVICE_FENCE=2" in scoped.build_options({})
+    assert not {"-cl-std=CL1.2"} & set(scoped.build_options({}))
+    v, f = random_soup(50_000, seed=4)
+    points = _inputs(v)[2]
+    for options in ({}, {"treelet_rounds": 1}, {"collapse": True}):
+        a = lbvh.build(v, f, device=scoped, **options)
+        b = lbvh.build(v, f, device=cpu_ctx, **options)
+        a.validate()
+        assert np.array_equal(a.nodes.view(np.int32), b.nodes.view(np.int32)), options
+        assert np.array_equal(a.winding_numbers(points), b.winding_numbers(points)), options
