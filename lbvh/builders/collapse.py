@@ -49,7 +49,7 @@ def _decide(tree: Tree, options: CollapseOptions, scope: dev.Scope | None = None
     stats = mem.alloc(_STATS_DTYPE.itemsize * n, scratch=True, scope=scope)
     becomes_leaf = mem.alloc(4 * n, scratch=True, scope=scope)
     fill = clear_arrivals(ctx, arrivals, n)
-    launch = ctx.launch(num_leaves, min_per_item=256)
+    launch = ctx.walk_launch(num_leaves, min_per_item=256)
     ev = dev.run(ctx, KERNEL_FILE, "collapse_costs", launch, tree.nodes, tree.parent, arrivals,
                  leaf_list if leaf_list is not None else arrivals, leaf_list is not None,
                  leaf_first, num_leaves, launch.per_item, float(options.c_node),

@@ -49,7 +49,7 @@ def refit_from_boxes(ctx: Context, boxes: cl.Buffer, prim_order: cl.Buffer, node
         arrivals = nodes   # an argument the kernel does not read
     else:
         events.append(clear_arrivals(ctx, arrivals, num_nodes))
-    launch = (ctx.launch(num_leaves, min_per_item=256) if per_item is None
+    launch = (ctx.walk_launch(num_leaves, min_per_item=256) if per_item is None
               else ctx.launch_chunks(num_leaves, per_item))
     use_list = leaf_nodes is not None
     leaf_arg = leaf_nodes if use_list else arrivals  # not read by the kernel in that case

@@ -53,7 +53,7 @@ def restructure_treelets(ctx: Context, nodes: cl.Buffer, parent: cl.Buffer, cost
     ``min_leaves``: see :func:`round_min_leaves`.
     """
     events = []
-    launch = ctx.launch(num_leaves, min_per_item=256)
+    launch = ctx.walk_launch(num_leaves, min_per_item=256)
     use_list = leaf_nodes is not None
     for r in range(rounds):
         events.append(clear_arrivals(ctx, arrivals, num_nodes))

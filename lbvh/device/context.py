@@ -119,6 +119,13 @@ class Context:
         # PoCL compiles kernels with clang: kernels may use clang builtins behind a define
         self.compiler_is_clang = self.device.platform.name.strip().lower() == _POCL_PLATFORM
         self.compute_units = max(1, int(self.device.max_compute_units))
+        #: common.h's DEVICE_FENCE for every kernel (:func:`.programs.device_fence`).
+        self.fence = programs.device_fence(self.device)
+        #: Whether that fence reaches every work-group (a CPU's coherent memory,
+        #: NVIDIA's membar.gl, OpenCL C 2.0/3.0's device scope); where not, the
+        #: bottom-up walks run as one work-group (:meth:`walk_launch`).
+        self.fence_reaches_device = bool(self.device.type & cl.device_type.CPU) or \
+            self.fence != programs.FENCE_MEM_FENCE
 
     # -- launch geometry ---------------------------------------------------
     def work_items(self) -> int:
@@ -138,6 +145,19 @@ class Context:
             per_item = max(min_per_item, -(-count // self.work_items()))
             return self.launch_chunks(count, -(-per_item // multiple) * multiple)
         return self.launch_chunks(count, gpu_per_item)
+
+    def walk_launch(self, count: int, min_per_item: int = 256) -> Launch:
+        """The launch of a bottom-up walk over ``count`` leaves (the refit, the
+        treelets, the collapse's costs, the winding moments: common.h's
+        second_arrival). As :meth:`launch` where the device's fence reaches every
+        work-group; on a GPU without such a fence (OpenCL C 1.2 alone, not NVIDIA's),
+        one work-group of up to 256 work-items walks every leaf: slower, but the
+        handshake of two walks then needs only the work-group's own mem_fence."""
+        if self.fence_reaches_device:
+            return self.launch(count, min_per_item)
+        count = max(int(count), 0)
+        local = max(1, min(256, int(self.device.max_work_group_size)))
+        return Launch(count, max(1, -(-count // local)), local, local)
 
     def launch_chunks(self, count: int, per_item: int) -> Launch:
         """Chunks of exactly ``per_item`` items (the last one shorter), on any device."""
@@ -204,7 +224,7 @@ class Context:
 
     def build_options(self, defines: dict[str, int | str]) -> list[str]:
         """The options a kernel file is compiled with (:func:`.programs.build_options`)."""
-        return programs.build_options(self.device, defines)
+        return programs.build_options(self.device, defines, self.fence)
 
     def _recompile(self, filename: str, defines: dict[str, int | str] | None,
                    why: str) -> cl.Program:
@@ -218,7 +238,8 @@ class Context:
             return prog
 
     def _compile(self, filename: str, defines: dict[str, int | str], salt: str = "") -> cl.Program:
-        prog, log = compile_program(self.ctx, self.device, self.name, filename, defines, salt)
+        prog, log = compile_program(self.ctx, self.device, self.name, filename, defines, salt,
+                                    self.fence)
         self._logs[(filename, tuple(sorted(defines.items())))] = log
         return prog
 

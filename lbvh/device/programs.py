@@ -250,11 +250,13 @@ def device_fence(device: cl.Device) -> int:
     return FENCE_DEVICE_SCOPE if device_scope_std(device) else FENCE_MEM_FENCE
 
 
-def build_options(device: cl.Device, defines: dict[str, int | str]) -> list[str]:
+def build_options(device: cl.Device, defines: dict[str, int | str],
+                  fence: int | None = None) -> list[str]:
     """The options a kernel file is compiled with: no path (see :func:`kernel_source`).
-    Besides ``defines``, every file gets the device's ``DEVICE_FENCE``; OpenCL C 1.2
-    but where that fence needs OpenCL C 2.0 or 3.0."""
-    fence = device_fence(device)
+    Besides ``defines``, every file gets ``DEVICE_FENCE`` (``fence``, by default the
+    device's: :func:`device_fence`); OpenCL C 1.2 but where that fence needs OpenCL
+    C 2.0 or 3.0."""
+    fence = device_fence(device) if fence is None else fence
     defines = {"DEVICE_FENCE": fence, **defines}
     std = device_scope_std(device) if fence == FENCE_DEVICE_SCOPE else "CL1.2"
     options = [f"-cl-std={std}"] + [f"-D{k}={v}" for k, v in sorted(defines.items())]
@@ -266,11 +268,12 @@ def build_options(device: cl.Device, defines: dict[str, int | str]) -> list[str]
 
 
 def compile_program(ctx: cl.Context, device: cl.Device, device_name: str, filename: str,
-                    defines: dict[str, int | str], salt: str = "") -> tuple[cl.Program, str]:
+                    defines: dict[str, int | str], salt: str = "",
+                    fence: int | None = None) -> tuple[cl.Program, str]:
     """Compile ``kernels/<filename>`` for ``device``: ``(program, build log)``.
 
     ``salt`` (a reason) makes the source differ from every cached one, so a
-    damaged entry of a compiler cache is bypassed. A compile error raises
+    damaged entry of a compiler cache is bypassed; ``fence``: :func:`build_options`. A compile error raises
     :class:`DeviceError` with the log.
     """
     check_compiler_cache()
@@ -281,7 +284,7 @@ def compile_program(ctx: cl.Context, device: cl.Device, device_name: str, filena
         # source, so the difference must survive preprocessing: a typedef.
         nonce = f"{os.getpid()}_{time.time_ns()}"
         source += f"\n/* lbvh: compiled afresh: {salt} */ typedef int lbvh_afresh_{nonce};\n"
-    options = build_options(device, defines)
+    options = build_options(device, defines, fence)
     raw = _raw_program(ctx, source)
     try:
         with warnings.catch_warnings():
@@ -300,5 +303,5 @@ def compile_program(ctx: cl.Context, device: cl.Device, device_name: str, filena
     prog = cl.Program(raw)
     if not salt and not kernel_names(prog):
         return compile_program(ctx, device, device_name, filename, defines,
-                               salt="no kernels in the binary")
+                               salt="no kernels in the binary", fence=fence)
     return prog, log

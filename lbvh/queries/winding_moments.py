@@ -323,7 +323,7 @@ def make_moments(ctx: dev.Context, tree: Tree, mesh: Mesh, wide: Wide | None,
             events.append(dev.run(ctx, KERNEL_FILE, "lane_slots", fill, wide.lanes, slot, out,
                                   lanes, fill.per_item, defines=defines, wait_for=events))
         leaf_list, leaf_first, num_leaves = tree.leaf_walks()
-        walks = ctx.launch(num_leaves, min_per_item=256)
+        walks = ctx.walk_launch(num_leaves, min_per_item=256)
         dev.run(ctx, KERNEL_FILE, "moments", walks, mesh.vertices_buf, mesh.faces_buf,
                 tree.prim_order, tree.nodes, tree.parent, arrivals,
                 leaf_list if leaf_list is not None else arrivals, leaf_list is not None,

@@ -158,22 +158,46 @@ def test_every_kernel_is_compiled_with_the_devices_fence(ctx):
     assert f"-DDEVICE_FENCE={programs.device_fence(ctx.device)}" in options and "-DA=1" in options
 
 
-def test_the_device_scope_fence_gives_the_same_trees(cpu_ctx, monkeypatch):
-    """DEVICE_FENCE=2 (OpenCL C 3.0's device-scope fence, for GPUs other than
-    NVIDIA's), compiled as OpenCL C 3.0 where PoCL has the features: the trees of
-    every bottom-up walk (refit, treelets, collapse) and the winding moments equal
-    those of the CPU's choices."""
-    if programs.device_scope_std(cpu_ctx.device) is None:
-        pytest.skip(f"{cpu_ctx.name} has no device-scope fence (OpenCL C 2.0, or 3.0's features)")
-    monkeypatch.setattr(programs, "device_fence", lambda device: programs.FENCE_DEVICE_SCOPE)
-    scoped = dev.Context(cpu_ctx.device)          # its own programs, compiled with the fence
-    assert "-DDEVICE_FENCE=2" in scoped.build_options({})
-    assert not {"-cl-std=CL1.2"} & set(scoped.build_options({}))
-    v, f = random_soup(50_000, seed=4)
+def _same_walks(ctx_a, ctx_b, seed: int) -> None:
+    """Every bottom-up walk gives the same bits in both contexts: the trees of the
+    build's refit, the treelets and the collapse, the winding moments (through the
+    winding numbers) and a refit after the vertices moved."""
+    v, f = random_soup(50_000, seed=seed)
     points = _inputs(v)[2]
     for options in ({}, {"treelet_rounds": 1}, {"collapse": True}):
-        a = lbvh.build(v, f, device=scoped, **options)
-        b = lbvh.build(v, f, device=cpu_ctx, **options)
+        a = lbvh.build(v, f, device=ctx_a, **options)
+        b = lbvh.build(v, f, device=ctx_b, **options)
         a.validate()
         assert np.array_equal(a.nodes.view(np.int32), b.nodes.view(np.int32)), options
         assert np.array_equal(a.winding_numbers(points), b.winding_numbers(points)), options
+    moved = v + np.float32(0.01) * np.sin(v).astype(np.float32)
+    a.refit(moved)
+    b.refit(moved)
+    assert np.array_equal(a.nodes.view(np.int32), b.nodes.view(np.int32))
+
+
+def test_the_device_scope_fence_gives_the_same_trees(cpu_ctx):
+    """DEVICE_FENCE=2 (OpenCL C 3.0's device-scope fence, for GPUs other than
+    NVIDIA's), compiled as OpenCL C 3.0 where PoCL has the features: the trees of
+    every bottom-up walk equal those of the CPU's choices (_same_walks)."""
+    if programs.device_scope_std(cpu_ctx.device) is None:
+        pytest.skip(f"{cpu_ctx.name} has no device-scope fence (OpenCL C 2.0, or 3.0's features)")
+    scoped = dev.Context(cpu_ctx.device)          # its own programs, compiled with the fence
+    scoped.fence = programs.FENCE_DEVICE_SCOPE
+    assert "-DDEVICE_FENCE=2" in scoped.build_options({})
+    assert not {"-cl-std=CL1.2"} & set(scoped.build_options({}))
+    _same_walks(scoped, cpu_ctx, seed=4)
+
+
+def test_walks_as_one_work_group_give_the_same_trees(gpu_ctx):
+    """On a GPU whose fence does not reach other work-groups (OpenCL C 1.2 alone, not
+    NVIDIA's), the bottom-up walks run as one work-group (Context.walk_launch): every
+    walk's results equal those of the usual launches (_same_walks; the GPU's choices
+    on PoCL where the tests' device is not a GPU)."""
+    one = dev.Context(gpu_ctx.device)
+    one.is_cpu = False
+    one.fence_reaches_device = False
+    launch = one.walk_launch(100_000)
+    assert launch.global_size == launch.local_size <= 256
+    assert launch.per_item * launch.global_size >= 100_000
+    _same_walks(one, gpu_ctx, seed=6)
