@@ -221,7 +221,8 @@ def _build_log(prog, dev: cl.Device) -> str:
 # builds of 4M triangles made node boxes that missed part of a child. There the
 # fence is PTX's membar.gl; on other GPUs, OpenCL C 2.0/3.0's device-scope fence
 # where the device has it. A GPU with neither keeps mem_fence, which OpenCL 1.2
-# does not promise to reach other work-groups.
+# does not promise to reach other work-groups, and runs the walks as one
+# work-group (Context.walk_launch).
 FENCE_MEM_FENCE, FENCE_NVIDIA, FENCE_DEVICE_SCOPE = 0, 1, 2
 # OpenCL C 3.0's optional features that memory_scope_device with acq_rel needs
 _SCOPE_FEATURES = {"__opencl_c_atomic_scope_device", "__opencl_c_atomic_order_acq_rel"}
@@ -259,6 +260,9 @@ def build_options(device: cl.Device, defines: dict[str, int | str],
     fence = device_fence(device) if fence is None else fence
     defines = {"DEVICE_FENCE": fence, **defines}
     std = device_scope_std(device) if fence == FENCE_DEVICE_SCOPE else "CL1.2"
+    if std is None:
+        raise DeviceError(f"lbvh: DEVICE_FENCE={fence} needs OpenCL C 2.0, or 3.0's "
+                          f"{' and '.join(sorted(_SCOPE_FEATURES))}; the device has neither")
     options = [f"-cl-std={std}"] + [f"-D{k}={v}" for k, v in sorted(defines.items())]
     if device.single_fp_config & cl.device_fp_config.CORRECTLY_ROUNDED_DIVIDE_SQRT:
         # The Morton quantisation divides; correctly rounded division keeps it
@@ -273,8 +277,8 @@ def compile_program(ctx: cl.Context, device: cl.Device, device_name: str, filena
     """Compile ``kernels/<filename>`` for ``device``: ``(program, build log)``.
 
     ``salt`` (a reason) makes the source differ from every cached one, so a
-    damaged entry of a compiler cache is bypassed; ``fence``: :func:`build_options`. A compile error raises
-    :class:`DeviceError` with the log.
+    damaged entry of a compiler cache is bypassed; ``fence``: see
+    :func:`build_options`. A compile error raises :class:`DeviceError` with the log.
     """
     check_compiler_cache()
     source = kernel_source(filename)

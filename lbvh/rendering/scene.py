@@ -114,10 +114,10 @@ def _stl_problem(path: Path) -> str | None:
                 return None                     # binary: header, count, 50 bytes a triangle
         f.seek(max(0, size - 1024))
         tail = f.read()
-    ascii = head.lstrip().lower().startswith(b"solid")
-    if ascii and b"endsolid" in tail.lower():
+    is_ascii = head.lstrip().lower().startswith(b"solid")
+    if is_ascii and b"endsolid" in tail.lower():
         return None                             # ASCII: "solid name" ... "endsolid name"
-    if ascii:
+    if is_ascii:
         return (f"not a valid STL file ({size:,} bytes): it begins as ASCII STL ('solid') "
                 f"but does not end with 'endsolid' (cut short?)")
     binary = (f"as binary STL its header's count of {count:,} triangles needs "

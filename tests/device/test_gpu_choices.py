@@ -151,6 +151,8 @@ def test_device_fence_reaches_the_whole_device_on_gpus_that_have_one():
         assert programs.device_scope_std(plain) is None
         assert programs.device_fence(plain) == programs.FENCE_MEM_FENCE
         assert programs.build_options(plain, {})[0] == "-cl-std=CL1.2"
+        with pytest.raises(dev.DeviceError, match="DEVICE_FENCE=2 needs OpenCL C 2.0"):
+            programs.build_options(plain, {}, programs.FENCE_DEVICE_SCOPE)
 
 
 def test_every_kernel_is_compiled_with_the_devices_fence(ctx):
