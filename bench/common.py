@@ -823,8 +823,15 @@ def resolve_scenes(p: argparse.ArgumentParser, args: argparse.Namespace,
 
 
 def command_line(script: str, argv: list[str] | None) -> str:
-    """The command that ran ``bench/<script>`` with ``argv`` (default: this process's)."""
-    return " ".join([f".venv/bin/python bench/{script}", *(sys.argv[1:] if argv is None else argv)])
+    """The command that ran ``bench/<script>`` with ``argv`` (default: this process's):
+    this interpreter, relative to the working folder where it lies below it
+    (``.venv/bin/python``), else as its full path."""
+    exe = Path(sys.executable)
+    try:
+        python = str(exe.relative_to(Path.cwd()))
+    except ValueError:
+        python = str(exe)
+    return " ".join([python, f"bench/{script}", *(sys.argv[1:] if argv is None else argv)])
 
 
 def report_start(command: str, ctx: dev.Context, peer_status: dict[str, str]) -> dict:
