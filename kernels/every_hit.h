@@ -250,39 +250,18 @@ inline void prefetch_triangle(__global const float *vertices, int s) {
 #endif
 }
 
-/* tree_hits through the tree's wide records (kernels/wide.cl): the root's
- * reference (root_x, root_y) as kernels/traverse.cl takes it (a leaf's node
- * words, or (record, 0)), after its box in `nodes` is entered. At a record,
- * one vector slab test (wide_slab.h) gives the lanes the ray's [tmin, tmax]
- * enters, as a bit mask (lane_bits): the records among them are asked into
- * the cache (prefetch_record: every one will be visited, whatever the order)
- * and all but the first pushed, then the leaves among them are tested there
- * and then, and the walk goes on to the first record. Only records go on the
- * stack: a leaf is never pushed and popped again. The same hits as the binary
- * walk: accept_hit decides each triangle by its own box. Measured against
- * the walk that pushed every lane it entered, leaves included, one branch a
- * lane (9 alternated rounds of 262,144 of the queries bench's rays, Zen 3):
- * count_hits 1.16x on the bunny, 1.10x on Sponza and terrain-1m; the
- * prefetch alone 1.07-1.11x; records renumbered depth first, nothing. */
-inline void wide_tree_hits(__global const float4 *nodes, __global const float *records,
-                           __global const int *prim_order, __global const float *vertices,
-                           __global const uint *slot_faces, int root, int root_x, int root_y,
-                           int num_nodes, const Ray *ray, long first, int cap,
+/* The walk of wide_tree_hits (below) from record x on, for a ray that entered its
+ * box; also where a stream's rays go on one by one (hit_streams.h). */
+inline void wide_walk_from(__global const float *records, __global const int *prim_order,
+                           __global const float *vertices, __global const uint *slot_faces,
+                           int x, int num_nodes, const Ray *ray, long first, int cap,
                            __global float *out_t, __global float *out_u, __global float *out_v,
                            __global int *out_prim, int *found, int *flag) {
-    float entry, leave;
-    if (!slab((__global const float *)(nodes + 2 * root), ray, ray->tmax, &entry, &leave))
-        return;
-    if (node_is_leaf(root_y)) {   /* a tree of one leaf: no records */
-        leaf_hits(prim_order, vertices, slot_faces, root_x, -root_y, ray, 0, first, cap, out_t,
-                  out_u, out_v, out_prim, out_prim, found);
-        return;
-    }
     WideRay w;
     make_wide_ray(ray, &w);
     __global const int *words = (__global const int *)records;
     int stack[STACK_SIZE];
-    int top = 0, steps = 0, x = root_x;
+    int top = 0, steps = 0;
     for (;;) {
         if (++steps > num_nodes) {
             *flag |= FLAG_VISIT_LIMIT;
@@ -322,6 +301,39 @@ inline void wide_tree_hits(__global const float4 *nodes, __global const float *r
         }
     }
 }
+
+/* tree_hits through the tree's wide records (kernels/wide.cl): the root's
+ * reference (root_x, root_y) as kernels/traverse.cl takes it (a leaf's node
+ * words, or (record, 0)), after its box in `nodes` is entered. At a record,
+ * one vector slab test (wide_slab.h) gives the lanes the ray's [tmin, tmax]
+ * enters, as a bit mask (lane_bits): the records among them are asked into
+ * the cache (prefetch_record: every one will be visited, whatever the order)
+ * and all but the first pushed, then the leaves among them are tested there
+ * and then, and the walk goes on to the first record. Only records go on the
+ * stack: a leaf is never pushed and popped again. The same hits as the binary
+ * walk: accept_hit decides each triangle by its own box. Measured against
+ * the walk that pushed every lane it entered, leaves included, one branch a
+ * lane (9 alternated rounds of 262,144 of the queries bench's rays, Zen 3):
+ * count_hits 1.16x on the bunny, 1.10x on Sponza and terrain-1m; the
+ * prefetch alone 1.07-1.11x; records renumbered depth first, nothing. */
+inline void wide_tree_hits(__global const float4 *nodes, __global const float *records,
+                           __global const int *prim_order, __global const float *vertices,
+                           __global const uint *slot_faces, int root, int root_x, int root_y,
+                           int num_nodes, const Ray *ray, long first, int cap,
+                           __global float *out_t, __global float *out_u, __global float *out_v,
+                           __global int *out_prim, int *found, int *flag) {
+    float entry, leave;
+    if (!slab((__global const float *)(nodes + 2 * root), ray, ray->tmax, &entry, &leave))
+        return;
+    if (node_is_leaf(root_y)) {   /* a tree of one leaf: no records */
+        leaf_hits(prim_order, vertices, slot_faces, root_x, -root_y, ray, 0, first, cap, out_t,
+                  out_u, out_v, out_prim, out_prim, found);
+        return;
+    }
+    wide_walk_from(records, prim_order, vertices, slot_faces, root_x, num_nodes, ray, first, cap,
+                   out_t, out_u, out_v, out_prim, found, flag);
+}
+
 #endif
 
 #endif

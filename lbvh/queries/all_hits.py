@@ -16,6 +16,12 @@ silhouette edge counts it 0 or 2 times, which keeps the parity). The hits do
 not depend on the tree, and their ``t, u, v`` are those the closest-hit
 query reports for the same triangle.
 
+On a CPU the counting pass walks its rays as streams (kernels/hit_streams.h,
+:func:`stream_plan`): a work-item takes a chunk of rays through the wide records
+together, each record read once for every ray of the chunk that entered it, where
+the per-ray walk waits on each record's rows in turn. The counts are the per-ray
+walk's, ray for ray.
+
 The twin is :func:`lbvh.verification.oracle.all_hits_brute`: the same test in
 numpy over every triangle, equal to the kernel's hits bit for bit
 (``dtype=np.float32``), and the float64 oracle, which differs from it only
@@ -37,7 +43,8 @@ from .traverse import FLAG_OVERFLOW, FLAG_VISIT_LIMIT, slab_pad, stack_bucket, s
 
 KERNEL_FILE = "all_hits.cl"
 
-__all__ = ["AllHits", "count_hits", "all_hits", "segment_work", "wide_defines", "DEFAULT_BATCH"]
+__all__ = ["AllHits", "count_hits", "all_hits", "segment_work", "wide_defines", "DEFAULT_BATCH",
+           "stream_plan", "StreamPlan"]
 
 #: Rays per kernel launch unless ``batch_size`` says otherwise.
 DEFAULT_BATCH = 1 << 18
@@ -264,7 +271,8 @@ def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None,
     if wide.packed and work is None:   # the counters count binary nodes (segment_work)
         return run_passes(target.ctx, KERNEL_FILE, "all_hits", wide_head(target),
                           stack_need(target), rays, batch, cap,
-                          defines=wide_defines(target.ctx, wide.width))
+                          defines=wide_defines(target.ctx, wide.width),
+                          streams=stream_records(target.ctx, wide.count))
     head = (tree.nodes, tree.nodes, tree.prim_order, target.mesh.vertices_buf,
             target.slot_faces(), tree.root, tree.root, 0, tree.num_nodes)
     return run_passes(target.ctx, KERNEL_FILE, "all_hits", head, target.traversal_depth(), rays,
@@ -277,9 +285,78 @@ def wide_defines(ctx: dev.Context, width: int) -> dict[str, int]:
     records pushed, where the compiler is clang (kernels/wide_rows.h; with the walk
     that pushes no leaf, count_hits measured 1.10-1.16x on the bunny, Sponza and
     terrain-1m, kernels/every_hit.h), and the triangles read in slot order
-    (``SLOT_TRIANGLES``: :func:`wide_head` passes them)."""
+    (``SLOT_TRIANGLES``: :func:`wide_head` passes them), and the room count_streams
+    gives a ray (``RAY_BYTES``)."""
     return {"WIDE": 1, "WIDTH": width, **lane_defines(ctx),
-            "CLANG_PREFETCH": int(ctx.compiler_is_clang), "SLOT_TRIANGLES": 1}
+            "CLANG_PREFETCH": int(ctx.compiler_is_clang), "SLOT_TRIANGLES": 1,
+            "RAY_BYTES": RAY_BYTES}
+
+
+#: Bytes of the room count_streams gives one ray's ``Ray`` (kernels/ray_triangle.h,
+#: 164 bytes; the kernel's build fails where it is larger: hit_streams.h).
+RAY_BYTES = 192
+#: List entries a stream's work-item has per ray of its chunk (kernels/hit_streams.h):
+#: a record takes WIDTH entries for each ray of its list until its subtree is done;
+#: where they run out its rays go on one by one (the same counts).
+STREAM_WORDS = 32
+#: The rays of a stream: from a quarter of the records' count, rounded up to a power of
+#: two, within these (see :func:`stream_plan`).
+STREAM_CHUNK = (4096, 32768)
+
+
+def stream_records(ctx: dev.Context, records: int) -> int:
+    """Whether the counting pass walks its rays as streams (kernels/hit_streams.h):
+    the records' count on a CPU, where a work-item is a loop on a core and the per-ray
+    walk waits on each record's rows; 0 elsewhere (a GPU hides that wait with other
+    work-items). Measured, streams / per-ray walk, count_hits of the queries bench's
+    262,144 rays, 2 cores (bench/README.md): 1.5x (bunny), 1.2x (Sponza), 2.8x
+    (terrain-1m)."""
+    return int(records) if ctx.is_cpu else 0
+
+
+@dataclass(frozen=True)
+class StreamPlan:
+    """count_streams' launch and room (kernels/all_hits.cl): ``items`` work-items,
+    each taking chunks of ``per_chunk`` rays in turn, with ``scratch_words`` list
+    entries of its own."""
+    per_chunk: int
+    items: int
+    scratch_words: int
+
+    def launch(self) -> dev.Launch:
+        return dev.Launch(self.items, 1, self.items, 1)
+
+    def buffers(self) -> dict[str, int]:
+        """Bytes of each buffer the kernel needs: Rays, slab constants, lists."""
+        rays = self.items * self.per_chunk
+        return {"rays": RAY_BYTES * rays, "slabs": 48 * rays,
+                "scratch": 4 * self.items * self.scratch_words}
+
+
+def stream_plan(ctx: dev.Context, rays: int, records: int) -> StreamPlan:
+    """The streams of a counting pass of ``rays`` rays through ``records`` wide
+    records. A chunk's rays share a record's reads where several of them enter it:
+    the more records, the more rays a chunk needs for that (a quarter of the
+    records, within STREAM_CHUNK: measured best on the bunny, 21,791 records, at
+    4,096-8,192 rays; terrain-1m, 303,914, at 32,768-65,536); but no fewer than
+    two chunks a compute unit where the rays allow, so that every core has work.
+    Two work-items a compute unit, each with its own room, and no buffer past the
+    device's largest allocation (the room then shrinks: fewer shared reads, the
+    same counts)."""
+    low, high = STREAM_CHUNK
+    per_chunk = min(high, max(low, 1 << max(0, int(records) // 4 - 1).bit_length()))
+    units = ctx.compute_units
+    per_chunk = max(1, min(per_chunk, -(-rays // (2 * units))))
+    chunks = -(-rays // per_chunk)
+    items = max(1, min(chunks, 2 * units))
+    words = STREAM_WORDS * per_chunk
+    largest = ctx.memory.max_alloc
+    while items > 1 and max(RAY_BYTES * items * per_chunk, 4 * items * words) > largest:
+        items -= 1
+    while per_chunk > 1 and max(RAY_BYTES * items * per_chunk, 4 * items * words) > largest:
+        per_chunk //= 2
+        words = STREAM_WORDS * per_chunk
+    return StreamPlan(per_chunk, items, words)
 
 
 def wide_head(target: QueryTarget) -> tuple:
@@ -308,7 +385,8 @@ SLOT_RANGE = (4, 64)
 
 def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, depth: int,
                rays: Rays, batch: int, cap: int | None, *, instances: bool = False,
-               work: np.ndarray | None = None, defines: dict[str, int] | None = None):
+               work: np.ndarray | None = None, defines: dict[str, int] | None = None,
+               streams: int = 0):
     """Count (``cap`` None) or collect (``cap`` -1: all, else at most ``cap`` per ray)
     the hits of every good ray, batch by batch, with a kernel of all_hits.cl's arguments
     (``head``: those before the rays; kernels/instance_hits.cl has them too, with an
@@ -317,6 +395,8 @@ def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, dep
     ``(t, prim, u, v)`` (and ``instance``) in ray order (each ray's sorted by the kernel).
     ``work`` (``int32 (N, 4)``, counting only, all_hits.cl) receives its counters;
     ``defines``: more of the kernel's compile-time choices (all_hits.cl's ``WIDE``).
+    ``streams``: the wide records' count where the counting pass walks the rays as
+    streams (``count_streams``, :func:`stream_records`), else 0.
 
     Collecting: one pass gives each ray :func:`first_slots` slots and counts its hits;
     the rays with more hits to keep than slots are traced again in a pass that has room
@@ -331,7 +411,7 @@ def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, dep
     base = {"STACK_SIZE": stack_bucket(depth + 1), "SLAB_PAD": slab_pad(ctx), **(defines or {})}
     # the kernel's columns: t, u, v, prim (and instance); returned as t, prim, u, v, ...
     dtypes = (np.float32, np.float32, np.float32, np.int32) + ((np.int32,) if instances else ())
-    pass_ = _Pass(ctx, kernel_file, kernel, head, base, dtypes)
+    pass_ = _Pass(ctx, kernel_file, kernel, head, base, dtypes, streams)
     lo, hi, stride = rays.kernel_intervals()
     m_all = len(rays)
     for start in range(0, m_all, batch):
@@ -479,6 +559,7 @@ class _Pass:
     head: tuple
     defines: dict
     dtypes: tuple
+    streams: int = 0   # the records' count where counting goes by streams, else 0
 
     def run(self, rays: Rays, offsets: np.ndarray | None, counters: bool = False,
             slots_only: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray | None,
@@ -504,7 +585,15 @@ class _Pass:
         args = (*self.head, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"], stride, m,
                 bufs["offsets"], bufs["counts"])
         try:
-            if offsets is None:
+            if offsets is None and self.streams and not counters:
+                plan = stream_plan(ctx, m, self.streams)
+                for name, nbytes in plan.buffers().items():
+                    bufs[name] = mem.alloc(nbytes)
+                dev.run(ctx, self.kernel_file, "count_streams", plan.launch(), *args[:-2],
+                        plan.per_chunk, bufs["rays"], bufs["slabs"], bufs["scratch"],
+                        plan.scratch_words, bufs["counts"], bufs["flags"],
+                        defines={**self.defines, "COUNT": 1})
+            elif offsets is None:
                 dev.run(ctx, self.kernel_file, self.kernel, launch, *args,
                         *[bufs["flags"]] * len(self.dtypes), bufs["flags"],
                         bufs.get("work", bufs["flags"]),

@@ -360,3 +360,98 @@ def test_refit_renews_the_triangles_in_slot_order():
     assert np.array_equal(bvh.count_hits(o2, d2), want.total)
     same(bvh.all_hits(o2, d2), want)
     assert bvh.slot_triangles() is not before
+
+
+# -- the counting pass as streams (kernels/hit_streams.h, all_hits.stream_plan) --------
+def _per_ray_counts(monkeypatch, bvh, *rays):
+    """count_hits by the per-ray walk, as on a GPU (no streams)."""
+    from lbvh.queries import all_hits as ah
+    with monkeypatch.context() as m:
+        m.setattr(ah, "stream_records", lambda ctx, records: 0)
+        return bvh.count_hits(*rays)
+
+
+def _stream_cases():
+    v, f = dense_soup(1500, 5)
+    o, d = random_rays(v, 600, 2)
+    yield "soup", v, f, o, d, 0.0, np.inf
+    tv, tf = meshes.terrain(20000, 3)
+    o, d = random_rays(tv, 3000, 4)
+    yield "terrain", tv, tf, o, d, 0.0, np.inf
+    for name in ("closed_cube_vertices_edges", "rays_in_face_planes", "axis_rays_signed_zeros",
+                 "huge_coordinates", "tiny_coordinates", "zero_area_mix", "1_triangle"):
+        case = hard_cases.make(name)
+        yield name, case.vertices, case.faces, case.origins, case.directions, case.tmin, case.tmax
+
+
+# (per_chunk, items, scratch words a ray): the host's plan; chunks of 5 rays over 3
+# work-items; room for the root's list alone (every ray goes on by the per-ray walk
+# from the root); room for the root and its lanes (deeper records with long lists
+# go on ray by ray)
+_PLANS = [None, (5, 3, 32), (64, 2, 1), (64, 2, 12)]
+
+
+@pytest.mark.parametrize("plan", _PLANS, ids=["host", "chunks-of-5", "no-room", "two-levels"])
+def test_streams_count_as_the_per_ray_walk_and_the_twin(monkeypatch, plan):
+    """count_hits on a CPU walks its rays as streams: the counts equal the per-ray
+    walk's and the twin's on every case, whatever the chunks and however soon the
+    room for the lists runs out (its rays then go on one by one)."""
+    from lbvh.queries import all_hits as ah
+    if plan is not None:
+        per_chunk, items, words = plan
+        monkeypatch.setattr(ah, "stream_plan", lambda ctx, rays, records: ah.StreamPlan(
+            per_chunk, items, words * per_chunk))
+    seen = []
+    real = ah.stream_records
+    monkeypatch.setattr(ah, "stream_records",
+                        lambda ctx, records: seen.append(real(ctx, records)) or seen[-1])
+    cpu = lbvh.device.context.get_context().is_cpu
+    for name, v, f, o, d, lo, hi in _stream_cases():
+        bvh = lbvh.build(v, f)
+        seen.clear()
+        got = bvh.count_hits(o, d, lo, hi)
+        # a CPU counts by streams, but in a tree of one leaf (no records)
+        assert bool(seen[0]) == (cpu and name != "1_triangle"), name
+        want = all_hits_brute(v, f, o, d, lo, hi, dtype=np.float32).total
+        assert np.array_equal(got, want), name
+        assert np.array_equal(got, _per_ray_counts(monkeypatch, bvh, o, d, lo, hi)), name
+
+
+def test_streams_with_few_frames_go_on_ray_by_ray(monkeypatch):
+    """A work-item whose frames (STREAM_FRAMES) run out sends that record's rays on by
+    the per-ray walk: the same counts."""
+    from lbvh.queries import all_hits as ah
+    real = ah.wide_defines
+    monkeypatch.setattr(ah, "wide_defines",
+                        lambda ctx, width: {**real(ctx, width), "STREAM_FRAMES": 12})
+    monkeypatch.setattr(ah, "stream_records", lambda ctx, records: records)
+    tv, tf = meshes.terrain(20000, 3)
+    o, d = random_rays(tv, 3000, 4)
+    bvh = lbvh.build(tv, tf)
+    want = all_hits_brute(tv, tf, o, d, dtype=np.float32).total
+    assert np.array_equal(bvh.count_hits(o, d), want)
+
+
+def test_stream_plan_fits_the_device_and_every_core():
+    """The plan's chunks cover the rays with work for every compute unit, its buffers
+    stay within the device's largest allocation (read from the device object), and a
+    GPU does not take streams."""
+    from types import SimpleNamespace
+    from lbvh.queries import all_hits as ah
+    for units, largest, rays, records in [(2, 1 << 30, 262144, 21791),
+                                          (2, 1 << 30, 262144, 303914),
+                                          (16, 1 << 30, 1000, 303914),
+                                          (64, 1 << 22, 1 << 20, 80000),
+                                          (1, 1 << 12, 10, 3)]:
+        ctx = SimpleNamespace(compute_units=units, memory=SimpleNamespace(max_alloc=largest))
+        plan = ah.stream_plan(ctx, rays, records)
+        assert plan.per_chunk >= 1 and plan.items >= 1
+        assert plan.scratch_words >= plan.per_chunk   # the root's list fits
+        assert max(plan.buffers().values()) <= max(largest, 4 * plan.scratch_words)
+        assert plan.items <= 2 * units
+        chunks = -(-rays // plan.per_chunk)
+        assert chunks >= min(2 * units, rays) or plan.per_chunk == 1
+        if largest >= 1 << 30:
+            assert max(plan.buffers().values()) <= largest
+    assert ah.stream_records(SimpleNamespace(is_cpu=False), 100) == 0
+    assert ah.stream_records(SimpleNamespace(is_cpu=True), 100) == 100
