@@ -42,10 +42,10 @@
  *                 closest hit, the work any traversal must do for that ray
  *                 (the ray-sampled cost of lbvh/verification/quality.py).
  *   SLAB_PAD, NO_FP64: kernels/ray_triangle.h.
- *   RAY_BYTES, STREAM_FRAMES, STREAM_AHEAD (count_streams): hit_streams.h.
+ *   RAY_BYTES, STREAM_FRAMES, STREAM_AHEAD (stream_hits_kernel): hit_streams.h.
  *
- * count_streams (WIDE=1, COUNT=1): the counting pass with the rays walked as
- * streams (hit_streams.h), the host's choice on a CPU: the same counts and flags.
+ * stream_hits_kernel (WIDE=1): either pass with the rays walked as streams
+ * (hit_streams.h), the host's choice on a CPU: the same counts, hits and flags.
  */
 #include "common.h"
 #include "every_hit.h"
@@ -109,20 +109,25 @@ __kernel void all_hits(__global const float4 *nodes, __global const float *recor
     flags[i] = flag;
 }
 
-#if WIDE && COUNT
-/* The counting pass as streams: work-item g takes chunks g, g + items, ... of
+#if WIDE
+/* Either pass as streams: work-item g takes chunks g, g + items, ... of
  * per_chunk rays each (the host's stream_plan), with its own room for their Rays
- * (RAY_BYTES each), slab constants and lists (scratch_words entries). */
-__kernel void count_streams(__global const float4 *nodes, __global const float *records,
-                            __global const int *prim_order, __global const float *vertices,
-                            __global const uint *slot_faces, const int root, const int root_x,
-                            const int root_y, const int num_nodes,
-                            __global const float *origins, __global const float *directions,
-                            __global const float *tmins, __global const float *tmaxs,
-                            const int interval_stride, const int count, const int per_chunk,
-                            __global uchar *rays, __global float4 *slabs, __global int *scratch,
-                            const int scratch_words, __global int *counts,
-                            __global int *flags) {
+ * (RAY_BYTES each), slab constants and lists (scratch_words entries); offsets,
+ * out_* and the sort as all_hits above. */
+__kernel void stream_hits_kernel(__global const float4 *nodes, __global const float *records,
+                                 __global const int *prim_order, __global const float *vertices,
+                                 __global const uint *slot_faces, const int root,
+                                 const int root_x, const int root_y, const int num_nodes,
+                                 __global const float *origins,
+                                 __global const float *directions,
+                                 __global const float *tmins, __global const float *tmaxs,
+                                 const int interval_stride, const int count,
+                                 __global const long *offsets, __global int *counts,
+                                 __global float *out_t, __global float *out_u,
+                                 __global float *out_v, __global int *out_prim,
+                                 __global int *flags, const int per_chunk, __global uchar *rays,
+                                 __global float4 *slabs, __global int *scratch,
+                                 const int scratch_words) {
     const int gid = get_global_id(0), items = get_global_size(0);
     __global uchar *my_rays = rays + (long)gid * per_chunk * RAY_BYTES;
     __global float4 *my_slabs = slabs + (long)gid * per_chunk * 3;
@@ -136,6 +141,8 @@ __kernel void count_streams(__global const float4 *nodes, __global const float *
             Ray ray;
             make_ray(&ray, origins + 3 * i, directions + 3 * i, tmins[i * interval_stride],
                      tmaxs[i * interval_stride]);
+            long slot;
+            const int cap = kept_slots(offsets, i, &slot);
             int found = 0, flag = 0;
             const int nan_ray = ray.ox != ray.ox || ray.oy != ray.oy || ray.oz != ray.oz ||
                                 ray.dx != ray.dx || ray.dy != ray.dy || ray.dz != ray.dz ||
@@ -146,8 +153,8 @@ __kernel void count_streams(__global const float4 *nodes, __global const float *
             } else if (slab((__global const float *)(nodes + 2 * root), &ray, ray.tmax, &entry,
                             &leave)) {
                 if (node_is_leaf(root_y)) {   /* a tree of one leaf: no records */
-                    leaf_hits(prim_order, vertices, slot_faces, root_x, -root_y, &ray, 0, 0, 0,
-                              0, 0, 0, 0, 0, &found);
+                    leaf_hits(prim_order, vertices, slot_faces, root_x, -root_y, &ray, 0, slot,
+                              cap, out_t, out_u, out_v, out_prim, out_prim, &found);
                 } else {
                     *stream_ray(my_rays, k) = ray;
                     put_stream_slab(my_slabs, k, &ray);
@@ -158,8 +165,17 @@ __kernel void count_streams(__global const float4 *nodes, __global const float *
             flags[i] = flag;
         }
         if (entered > 0)
-            count_stream(records, prim_order, vertices, slot_faces, root_x, num_nodes, my_rays,
-                         my_slabs, list, entered, scratch_words, counts + first, flags + first);
+            stream_hits(records, prim_order, vertices, slot_faces, root_x, num_nodes, my_rays,
+                        my_slabs, list, entered, scratch_words, offsets + first, counts + first,
+                        out_t, out_u, out_v, out_prim, flags + first);
+#if !COUNT
+        for (int i = first; i < first + n; ++i) {
+            long slot;
+            const int cap = kept_slots(offsets, i, &slot);
+            if (!SLOTS_ONLY || counts[i] <= cap)   /* else traced again */
+                sort_kept(slot, min(counts[i], cap), out_t, out_u, out_v, out_prim, out_prim);
+        }
+#endif
     }
 }
 #endif

@@ -1,5 +1,6 @@
-/* Hit counts of many rays at once: the rays walk the wide records together, as
- * streams (kernels/all_hits.cl count_streams; lbvh/queries/all_hits.py).
+/* Every hit of many rays at once: the rays walk the wide records together, as
+ * streams (kernels/all_hits.cl stream_hits; lbvh/queries/all_hits.py), for
+ * both of all_hits.cl's passes.
  *
  * The per-ray walk (every_hit.h wide_tree_hits) waits on memory: every
  * record's rows are a load that depends on the last, and a ray that counts
@@ -18,9 +19,11 @@
  * loads overlap instead of waiting one on the next.
  *
  * Every ray enters exactly the records and leaves that its own walk would
- * enter (the same slab test on the same planes), so the counts are equal to
- * the per-ray walk's, whatever the order: accept_hit makes each hit
- * independent of the tree (ray_triangle.h).
+ * enter (the same slab test on the same planes), so the counts and the kept
+ * hits are the per-ray walk's, whatever the order: accept_hit makes each hit
+ * independent of the tree (ray_triangle.h), and the slots keep the first hits
+ * only where the host traces the ray again when they overflow (SLOTS_ONLY), the
+ * nearest otherwise; each ray's kept hits are sorted after its chunk.
  *
  * Memory (the host's, lbvh/queries/all_hits.py stream_plan): per work-item
  * `per_chunk` rays' Ray (RAY_BYTES each) and slab constants (three float4),
@@ -103,14 +106,19 @@ inline void prefetch_stream_ray(__global const float4 *slabs, __global uchar *ra
 #endif
 }
 
-/* Count the hits of the `n` rays of a stream (their Rays and slab constants made,
- * list[0, n) the rays that entered the root record x0's box) into counts[k],
- * flags[k] for the per-ray walks' overflow. */
-inline void count_stream(__global const float *records, __global const int *prim_order,
-                         __global const float *vertices, __global const uint *slot_faces,
-                         int x0, int num_nodes, __global uchar *rays,
-                         __global const float4 *slabs, __global int *list, int n,
-                         int scratch_words, __global int *counts, __global int *flags) {
+/* The hits of the `n` rays of a stream (their Rays and slab constants made,
+ * list[0, n) the rays that entered the root record x0's box): counted into
+ * counts[k] (which hold each ray's hits so far), and with COUNT=0 kept in ray
+ * k's slots [offsets[k], offsets[k + 1]) as leaf_hits keeps them (every_hit.h
+ * hit_slot: the kept set does not depend on the order the hits come in);
+ * flags[k] gets the per-ray walks' overflow. */
+inline void stream_hits(__global const float *records, __global const int *prim_order,
+                        __global const float *vertices, __global const uint *slot_faces,
+                        int x0, int num_nodes, __global uchar *rays,
+                        __global const float4 *slabs, __global int *list, int n,
+                        int scratch_words, __global const long *offsets, __global int *counts,
+                        __global float *out_t, __global float *out_u, __global float *out_v,
+                        __global int *out_prim, __global int *flags) {
     __global const int *words = (__global const int *)records;
     int f_rec[STREAM_FRAMES], f_start[STREAM_FRAMES], f_len[STREAM_FRAMES];
     f_rec[0] = x0; f_start[0] = 0; f_len[0] = n;
@@ -127,10 +135,12 @@ inline void count_stream(__global const float *records, __global const int *prim
             for (int j = 0; j < len; ++j) {   /* no room: ray by ray from here */
                 const int k = mine[j];
                 Ray ray = *stream_ray(rays, k);
-                int found = 0, flag = 0;
+                long first;
+                const int cap = kept_slots(offsets, k, &first);
+                int found = counts[k], flag = 0;
                 wide_walk_from(records, prim_order, vertices, slot_faces, x, num_nodes, &ray,
-                               0, 0, 0, 0, 0, 0, &found, &flag);
-                counts[k] += found;
+                               first, cap, out_t, out_u, out_v, out_prim, &found, &flag);
+                counts[k] = found;
                 flags[k] |= flag;
             }
             continue;
@@ -160,13 +170,15 @@ inline void count_stream(__global const float *records, __global const int *prim
             const uint leaves = entered & leaf_lanes;
             if (leaves != 0u) {
                 Ray ray = *stream_ray(rays, k);
-                int found = 0;
+                long first;
+                const int cap = kept_slots(offsets, k, &first);
+                int found = counts[k];
                 for (uint m = leaves; m != 0u; m &= m - 1u) {
                     const int c = lowest_lane(m);
                     leaf_hits(prim_order, vertices, slot_faces, ref[c], -ref[WIDTH + c], &ray,
-                              0, 0, 0, 0, 0, 0, 0, 0, &found);
+                              0, first, cap, out_t, out_u, out_v, out_prim, out_prim, &found);
                 }
-                counts[k] += found;
+                counts[k] = found;
             }
         }
         /* the marker under the lanes' frames gives their lists back after them */

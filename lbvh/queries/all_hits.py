@@ -16,11 +16,11 @@ silhouette edge counts it 0 or 2 times, which keeps the parity). The hits do
 not depend on the tree, and their ``t, u, v`` are those the closest-hit
 query reports for the same triangle.
 
-On a CPU the counting pass walks its rays as streams (kernels/hit_streams.h,
+On a CPU both passes walk their rays as streams (kernels/hit_streams.h,
 :func:`stream_plan`): a work-item takes a chunk of rays through the wide records
 together, each record read once for every ray of the chunk that entered it, where
-the per-ray walk waits on each record's rows in turn. The counts are the per-ray
-walk's, ray for ray.
+the per-ray walk waits on each record's rows in turn. The counts and hits are the
+per-ray walk's, ray for ray.
 
 The twin is :func:`lbvh.verification.oracle.all_hits_brute`: the same test in
 numpy over every triangle, equal to the kernel's hits bit for bit
@@ -285,14 +285,14 @@ def wide_defines(ctx: dev.Context, width: int) -> dict[str, int]:
     records pushed, where the compiler is clang (kernels/wide_rows.h; with the walk
     that pushes no leaf, count_hits measured 1.10-1.16x on the bunny, Sponza and
     terrain-1m, kernels/every_hit.h), and the triangles read in slot order
-    (``SLOT_TRIANGLES``: :func:`wide_head` passes them), and the room count_streams
-    gives a ray (``RAY_BYTES``)."""
+    (``SLOT_TRIANGLES``: :func:`wide_head` passes them), and the room the streams
+    give a ray (``RAY_BYTES``)."""
     return {"WIDE": 1, "WIDTH": width, **lane_defines(ctx),
             "CLANG_PREFETCH": int(ctx.compiler_is_clang), "SLOT_TRIANGLES": 1,
             "RAY_BYTES": RAY_BYTES}
 
 
-#: Bytes of the room count_streams gives one ray's ``Ray`` (kernels/ray_triangle.h,
+#: Bytes of the room the streams give one ray's ``Ray`` (kernels/ray_triangle.h,
 #: 164 bytes; the kernel's build fails where it is larger: hit_streams.h).
 RAY_BYTES = 192
 #: List entries a stream's work-item has per ray of its chunk (kernels/hit_streams.h):
@@ -305,7 +305,7 @@ STREAM_CHUNK = (4096, 32768)
 
 
 def stream_records(ctx: dev.Context, records: int) -> int:
-    """Whether the counting pass walks its rays as streams (kernels/hit_streams.h):
+    """Whether the passes walk their rays as streams (kernels/hit_streams.h):
     the records' count on a CPU, where a work-item is a loop on a core and the per-ray
     walk waits on each record's rows; 0 elsewhere (a GPU hides that wait with other
     work-items). Measured, streams / per-ray walk, count_hits of the queries bench's
@@ -316,7 +316,7 @@ def stream_records(ctx: dev.Context, records: int) -> int:
 
 @dataclass(frozen=True)
 class StreamPlan:
-    """count_streams' launch and room (kernels/all_hits.cl): ``items`` work-items,
+    """stream_hits_kernel's launch and room (kernels/all_hits.cl): ``items`` work-items,
     each taking chunks of ``per_chunk`` rays in turn, with ``scratch_words`` list
     entries of its own."""
     per_chunk: int
@@ -334,7 +334,7 @@ class StreamPlan:
 
 
 def stream_plan(ctx: dev.Context, rays: int, records: int) -> StreamPlan:
-    """The streams of a counting pass of ``rays`` rays through ``records`` wide
+    """The streams of a pass of ``rays`` rays through ``records`` wide
     records. A chunk's rays share a record's reads where several of them enter it:
     the more records, the more rays a chunk needs for that (a quarter of the
     records, within STREAM_CHUNK: measured best on the bunny, 21,791 records, at
@@ -395,8 +395,8 @@ def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, dep
     ``(t, prim, u, v)`` (and ``instance``) in ray order (each ray's sorted by the kernel).
     ``work`` (``int32 (N, 4)``, counting only, all_hits.cl) receives its counters;
     ``defines``: more of the kernel's compile-time choices (all_hits.cl's ``WIDE``).
-    ``streams``: the wide records' count where the counting pass walks the rays as
-    streams (``count_streams``, :func:`stream_records`), else 0.
+    ``streams``: the wide records' count where the passes walk the rays as streams
+    (``stream_hits_kernel``, :func:`stream_records`), else 0.
 
     Collecting: one pass gives each ray :func:`first_slots` slots and counts its hits;
     the rays with more hits to keep than slots are traced again in a pass that has room
@@ -585,14 +585,20 @@ class _Pass:
         args = (*self.head, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"], stride, m,
                 bufs["offsets"], bufs["counts"])
         try:
-            if offsets is None and self.streams and not counters:
+            if self.streams and not counters:   # either pass, as streams
                 plan = stream_plan(ctx, m, self.streams)
                 for name, nbytes in plan.buffers().items():
                     bufs[name] = mem.alloc(nbytes)
-                dev.run(ctx, self.kernel_file, "count_streams", plan.launch(), *args[:-2],
-                        plan.per_chunk, bufs["rays"], bufs["slabs"], bufs["scratch"],
-                        plan.scratch_words, bufs["counts"], bufs["flags"],
-                        defines={**self.defines, "COUNT": 1})
+                if offsets is None:
+                    columns = [bufs["flags"]] * len(self.dtypes)
+                else:
+                    out = [mem.alloc(4 * max(size, 1)) for _ in self.dtypes]
+                    columns = out
+                dev.run(ctx, self.kernel_file, "stream_hits_kernel", plan.launch(), *args,
+                        *columns, bufs["flags"], plan.per_chunk, bufs["rays"], bufs["slabs"],
+                        bufs["scratch"], plan.scratch_words,
+                        defines={**self.defines, "COUNT": int(offsets is None),
+                                 **({"SLOTS_ONLY": 1} if slots_only else {})})
             elif offsets is None:
                 dev.run(ctx, self.kernel_file, self.kernel, launch, *args,
                         *[bufs["flags"]] * len(self.dtypes), bufs["flags"],

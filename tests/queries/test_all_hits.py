@@ -363,12 +363,12 @@ def test_refit_renews_the_triangles_in_slot_order():
 
 
 # -- the counting pass as streams (kernels/hit_streams.h, all_hits.stream_plan) --------
-def _per_ray_counts(monkeypatch, bvh, *rays):
-    """count_hits by the per-ray walk, as on a GPU (no streams)."""
+def _per_ray(monkeypatch, query, *args, **kwargs):
+    """A query by the per-ray walk, as on a GPU (no streams)."""
     from lbvh.queries import all_hits as ah
     with monkeypatch.context() as m:
         m.setattr(ah, "stream_records", lambda ctx, records: 0)
-        return bvh.count_hits(*rays)
+        return query(*args, **kwargs)
 
 
 def _stream_cases():
@@ -392,10 +392,11 @@ _PLANS = [None, (5, 3, 32), (64, 2, 1), (64, 2, 12)]
 
 
 @pytest.mark.parametrize("plan", _PLANS, ids=["host", "chunks-of-5", "no-room", "two-levels"])
-def test_streams_count_as_the_per_ray_walk_and_the_twin(monkeypatch, plan):
-    """count_hits on a CPU walks its rays as streams: the counts equal the per-ray
-    walk's and the twin's on every case, whatever the chunks and however soon the
-    room for the lists runs out (its rays then go on one by one)."""
+def test_streams_give_the_per_ray_walks_and_the_twins_hits(monkeypatch, plan):
+    """count_hits and all_hits on a CPU walk their rays as streams: the counts and the
+    hits equal the per-ray walk's and the twin's on every case, bit for bit, with and
+    without max_hits, whatever the chunks and however soon the room for the lists
+    runs out (its rays then go on one by one)."""
     from lbvh.queries import all_hits as ah
     if plan is not None:
         per_chunk, items, words = plan
@@ -412,9 +413,12 @@ def test_streams_count_as_the_per_ray_walk_and_the_twin(monkeypatch, plan):
         got = bvh.count_hits(o, d, lo, hi)
         # a CPU counts by streams, but in a tree of one leaf (no records)
         assert bool(seen[0]) == (cpu and name != "1_triangle"), name
-        want = all_hits_brute(v, f, o, d, lo, hi, dtype=np.float32).total
-        assert np.array_equal(got, want), name
-        assert np.array_equal(got, _per_ray_counts(monkeypatch, bvh, o, d, lo, hi)), name
+        want = all_hits_brute(v, f, o, d, lo, hi, dtype=np.float32)
+        assert np.array_equal(got, want.total), name
+        assert np.array_equal(got, _per_ray(monkeypatch, bvh.count_hits, o, d, lo, hi)), name
+        same(bvh.all_hits(o, d, lo, hi), want)
+        same(bvh.all_hits(o, d, lo, hi, max_hits=2),
+             _per_ray(monkeypatch, bvh.all_hits, o, d, lo, hi, max_hits=2))
 
 
 def test_streams_with_few_frames_go_on_ray_by_ray(monkeypatch):
