@@ -340,9 +340,9 @@ def stream_plan(ctx: dev.Context, rays: int, records: int) -> StreamPlan:
     records, within STREAM_CHUNK: measured best on the bunny, 21,791 records, at
     4,096-8,192 rays; terrain-1m, 303,914, at 32,768-65,536); but no fewer than
     two chunks a compute unit where the rays allow, so that every core has work.
-    Two work-items a compute unit, each with its own room, and no buffer past the
-    device's largest allocation (the room then shrinks: fewer shared reads, the
-    same counts)."""
+    Two work-items a compute unit, each with its own room; no buffer past the
+    device's largest allocation, and all of them within an eighth of its memory
+    (the room then shrinks: fewer shared reads, the same hits)."""
     low, high = STREAM_CHUNK
     per_chunk = min(high, max(low, 1 << max(0, int(records) // 4 - 1).bit_length()))
     units = ctx.compute_units
@@ -351,9 +351,15 @@ def stream_plan(ctx: dev.Context, rays: int, records: int) -> StreamPlan:
     items = max(1, min(chunks, 2 * units))
     words = STREAM_WORDS * per_chunk
     largest = ctx.memory.max_alloc
-    while items > 1 and max(RAY_BYTES * items * per_chunk, 4 * items * words) > largest:
+    budget = int(ctx.device.global_mem_size) // 8
+
+    def too_big() -> bool:
+        plan = StreamPlan(per_chunk, items, words).buffers()
+        return max(plan.values()) > largest or sum(plan.values()) > budget
+
+    while items > 1 and too_big():
         items -= 1
-    while per_chunk > 1 and max(RAY_BYTES * items * per_chunk, 4 * items * words) > largest:
+    while per_chunk > 1 and too_big():
         per_chunk //= 2
         words = STREAM_WORDS * per_chunk
     return StreamPlan(per_chunk, items, words)
