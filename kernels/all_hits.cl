@@ -81,9 +81,7 @@ __kernel void all_hits(__global const float4 *nodes, __global const float *recor
     long first;
     const int cap = kept_slots(offsets, i, &first);
     int found = 0, flag = 0;
-    const int nan_ray = ray.ox != ray.ox || ray.oy != ray.oy || ray.oz != ray.oz ||
-                        ray.dx != ray.dx || ray.dy != ray.dy || ray.dz != ray.dz ||
-                        ray.tmin != ray.tmin || ray.tmax != ray.tmax;   /* isnan */
+    const int nan_ray = ray_has_nan(&ray);
     if (nan_ray) flag |= FLAG_NAN_RAY;
     int visits = 0, leaves = 0, tested = 0;
 #if WIDE
@@ -144,9 +142,7 @@ __kernel void stream_hits_kernel(__global const float4 *nodes, __global const fl
             long slot;
             const int cap = kept_slots(offsets, i, &slot);
             int found = 0, flag = 0;
-            const int nan_ray = ray.ox != ray.ox || ray.oy != ray.oy || ray.oz != ray.oz ||
-                                ray.dx != ray.dx || ray.dy != ray.dy || ray.dz != ray.dz ||
-                                ray.tmin != ray.tmin || ray.tmax != ray.tmax;   /* isnan */
+            const int nan_ray = ray_has_nan(&ray);
             float entry, leave;
             if (nan_ray) {
                 flag |= FLAG_NAN_RAY;

@@ -236,6 +236,15 @@ inline PREPARE_ATTR void make_ray(Ray *ray, __global const float *o, __global co
     prepare_ray(ray);
 }
 
+/* Whether any of the ray's origin, direction or interval is NaN. Such a ray would
+ * pass every slab test (NaN distances are ignored), empty lanes of wide records
+ * included: the walks report it (FLAG_NAN_RAY) instead of tracing it. */
+inline int ray_has_nan(const Ray *ray) {
+    return ray->ox != ray->ox || ray->oy != ray->oy || ray->oz != ray->oz ||
+           ray->dx != ray->dx || ray->dy != ray->dy || ray->dz != ray->dz ||
+           ray->tmin != ray->tmin || ray->tmax != ray->tmax;   /* isnan */
+}
+
 /* Slab test (Kay-Kajiya) of the box record at `box`
  * (lower.xyz, word, upper.xyz, word), made robust:
  * - near and far planes picked by the sign bit of d (-0.0 is negative);

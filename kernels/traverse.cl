@@ -245,11 +245,7 @@ __kernel void traverse(__global const float4 *nodes, __global const float *recor
         float entry, leave;
         int x = root_x, y = root_y;
         float x_entry;   /* the slab test's entry distance of node (x, y) */
-        /* A NaN ray would pass every slab test (NaN distances are ignored),
-         * empty lanes of wide records included: it is reported, not traced. */
-        const int nan_ray = ray.ox != ray.ox || ray.oy != ray.oy || ray.oz != ray.oz ||
-                            ray.dx != ray.dx || ray.dy != ray.dy || ray.dz != ray.dz ||
-                            ray.tmin != ray.tmin || ray.tmax != ray.tmax;   /* isnan */
+        const int nan_ray = ray_has_nan(&ray);   /* reported, not traced */
         if (nan_ray) flag |= FLAG_NAN_RAY;
         int go = !nan_ray &&
                  slab((__global const float *)(nodes + 2 * root), &ray, ray.tmax, &entry, &leave);

@@ -591,31 +591,22 @@ class _Pass:
         args = (*self.head, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"], stride, m,
                 bufs["offsets"], bufs["counts"])
         try:
+            if offsets is not None:   # the kept hits' columns; counting writes none
+                out = [mem.alloc(4 * max(size, 1)) for _ in self.dtypes]
+            columns = out or [bufs["flags"]] * len(self.dtypes)
+            defines = {**self.defines, "COUNT": int(offsets is None),
+                       **({"COUNTERS": 1} if counters else {}),
+                       **({"SLOTS_ONLY": 1} if slots_only else {})}
             if self.streams and not counters:   # either pass, as streams
                 plan = stream_plan(ctx, m, self.streams)
                 for name, nbytes in plan.buffers().items():
                     bufs[name] = mem.alloc(nbytes)
-                if offsets is None:
-                    columns = [bufs["flags"]] * len(self.dtypes)
-                else:
-                    out = [mem.alloc(4 * max(size, 1)) for _ in self.dtypes]
-                    columns = out
                 dev.run(ctx, self.kernel_file, "stream_hits_kernel", plan.launch(), *args,
                         *columns, bufs["flags"], plan.per_chunk, bufs["rays"], bufs["slabs"],
-                        bufs["scratch"], plan.scratch_words,
-                        defines={**self.defines, "COUNT": int(offsets is None),
-                                 **({"SLOTS_ONLY": 1} if slots_only else {})})
-            elif offsets is None:
-                dev.run(ctx, self.kernel_file, self.kernel, launch, *args,
-                        *[bufs["flags"]] * len(self.dtypes), bufs["flags"],
-                        bufs.get("work", bufs["flags"]),
-                        defines={**self.defines, "COUNT": 1,
-                                 **({"COUNTERS": 1} if counters else {})})
+                        bufs["scratch"], plan.scratch_words, defines=defines)
             else:
-                out = [mem.alloc(4 * max(size, 1)) for _ in self.dtypes]
-                dev.run(ctx, self.kernel_file, self.kernel, launch, *args, *out, bufs["flags"],
-                        bufs["flags"], defines={**self.defines, "COUNT": 0,
-                                                **({"SLOTS_ONLY": 1} if slots_only else {})})
+                dev.run(ctx, self.kernel_file, self.kernel, launch, *args, *columns,
+                        bufs["flags"], bufs.get("work", bufs["flags"]), defines=defines)
             counts = dev.from_device(ctx, bufs["counts"], np.int32, (m,))
             flags = dev.from_device(ctx, bufs["flags"], np.int32, (m,))
             work = (dev.from_device(ctx, bufs["work"], np.int32, (m, 4)) if counters else None)
