@@ -95,7 +95,7 @@ inline uint stream_slab(__global const floatw *row, __global const float4 *slabs
     return lane_bits(t0 <= min_keep_w(t1, (floatw)(j.w)) * SLAB_PAD);
 }
 
-/* List entry `ahead` of a stream's rays asked into the cache: its slab constants
+/* Ray k of a stream asked into the cache ahead of its turn: its slab constants
  * (first and third line, as they fall) and its Ray. */
 inline void prefetch_stream_ray(__global const float4 *slabs, __global uchar *rays, int k) {
 #if CLANG_PREFETCH && defined(__clang__)

@@ -362,7 +362,7 @@ def test_refit_renews_the_triangles_in_slot_order():
     assert bvh.slot_triangles() is not before
 
 
-# -- the counting pass as streams (kernels/hit_streams.h, all_hits.stream_plan) --------
+# -- both passes as streams (kernels/hit_streams.h, all_hits.stream_plan) -----------------
 def _per_ray(monkeypatch, query, *args, **kwargs):
     """A query by the per-ray walk, as on a GPU (no streams)."""
     from lbvh.queries import all_hits as ah
