@@ -246,7 +246,9 @@ def time_moments(bvh: lbvh.BVH, v: np.ndarray, f: np.ndarray) -> dict[str, float
     t0 = time.perf_counter()
     rows = winding_moments.node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f)
     if wide.packed and wide.count:
-        winding_moments.wide_moments(rows, winding_moments.read_lanes(bvh.ctx, wide))
+        lanes = winding_moments.read_lanes(bvh.ctx, wide)
+        winding_moments.wide_moments(rows, lanes, winding_moments.lane_corners(
+            lanes, bvh.nodes, bvh.prim_order, v, f))
     return {"device": device, "host": time.perf_counter() - t0}
 
 

@@ -29,10 +29,16 @@
  *
  * With WIDE=1 the walk goes through the tree's wide records (kernels/wide.cl)
  * instead: `moments` then holds, per record, the same ROWS values of each
- * lane's binary node as ROWS rows of WIDTH floats (winding_moments.py
- * wide_moments; an empty lane has R^2 and the floor -1, so it is always far, and adds 0),
- * and one record's lanes are tested and expanded in one vector computation;
- * the lanes that are near are summed (leaves) or pushed (records). Every node
+ * lane's binary node as ROWS rows of WIDTH floats, then CORNER_ROWS rows of the
+ * corners of each leaf lane's first triangle (winding_moments.py wide_moments
+ * and lane_corners; an empty lane has R^2 and the floor -1, so it is always
+ * far, and adds 0), and one record's lanes are tested and expanded in one
+ * vector computation; the lanes that are near are summed (leaves) or pushed
+ * (records). The near leaves' first triangles are summed in one vector
+ * computation too, from the corner rows (solid_angles): with one triangle a
+ * leaf, as the default tree's, that read and sum of the corners one triangle
+ * at a time through slot_faces was half the walk's time on Sponza (perf), and
+ * the rows took it to 1.6x the points per second (bench/README.md). Every node
  * expanded meets the same test as in the binary walk; a node that the binary
  * walk expands but that is not a lane (a record's inner nodes, the root) is
  * expanded through its lanes instead, which is as close or closer.
@@ -79,6 +85,8 @@
 #else
 #define ROWS 17
 #endif
+#define CORNER_ROWS 9
+#define RECORD_ROWS (ROWS + CORNER_ROWS)
 #define FLOOR_ROW (ROWS - 1)
 
 #define FLAG_OVERFLOW 1
@@ -99,25 +107,23 @@
 /* atan2(y, x) in float32 within 4e-7 of the exact angle (under 2 ulps of pi),
  * inline: PoCL 3 calls its atan2 out of line, and that call was two thirds of
  * the kernel's time on Sponza (perf). atan(t) for t = min/max of |x|, |y| in
- * [0, 1] is t * P(t^2), P of degree 7 fitted (minimax, by reweighted least
+ * [0, 1] is t * P(t^2), P (ATAN_P) of degree 7 fitted (minimax, by reweighted least
  * squares in float64) to within 4e-8 of atan on [0, 1], then the octant:
  * pi/2 - a where |y| > |x|, pi - a where x's sign bit is set (atan2(0, -0) =
  * pi, as IEEE's), the sign of y. NaN in stays NaN; (0, 0) gives 0 (or pi);
  * (inf, inf) gives NaN, where atan2 gives pi/4 (a triangle whose corners'
  * distances overflow float32). */
+#define ATAN_P(s)                                                                          \
+    (((((((-0.004054564982652664f * (s) + 0.021862955763936043f) * (s) -                   \
+           0.055912334471940994f) * (s) + 0.0964219868183136f) * (s) -                      \
+         0.1390863060951233f) * (s) + 0.19946566224098206f) * (s) -                         \
+       0.33329859375953674f) * (s) + 0.9999993443489075f)
 inline float atan2_poly(float y, float x) {
     const float ax = abs_bits(x), ay = abs_bits(y);
     const int steep = ay > ax;
     const float t = steep ? ax / ay : (ax == 0.0f ? 0.0f : ay / ax);
     const float s = t * t;
-    float a = -0.004054564982652664f;
-    a = a * s + 0.021862955763936043f;
-    a = a * s - 0.055912334471940994f;
-    a = a * s + 0.0964219868183136f;
-    a = a * s - 0.1390863060951233f;
-    a = a * s + 0.19946566224098206f;
-    a = a * s - 0.33329859375953674f;
-    a = a * s + 0.9999993443489075f;
+    float a = ATAN_P(s);
     a *= t;
     a = steep ? M_PI_2_F - a : a;
     a = as_int(x) < 0 ? M_PI_F - a : a;
@@ -177,6 +183,45 @@ inline float lanes_sum(floatw v) {
     const float2 d = h.lo + h.hi;
     return d.x + d.y;
 }
+
+/* atan2_poly lane by lane, by the same operations, with masks for its choices
+ * (PoCL 3 calls select() out of line). */
+inline floatw atan2_polyw(floatw y, floatw x) {
+    const intw magnitude = (intw)(0x7fffffff);
+    const floatw ax = as_floatw(as_intw(x) & magnitude), ay = as_floatw(as_intw(y) & magnitude);
+    const intw steep = ay > ax;
+    const floatw num = as_floatw((as_intw(ax) & steep) | (as_intw(ay) & ~steep));
+    const floatw den = as_floatw((as_intw(ay) & steep) | (as_intw(ax) & ~steep));
+    const floatw t = as_floatw(as_intw(num / den) & (den != (floatw)(0.0f)));
+    const floatw s = t * t;
+    floatw a = ATAN_P(s);
+    a *= t;
+    a = as_floatw((as_intw((floatw)(M_PI_2_F) - a) & steep) | (as_intw(a) & ~steep));
+    const intw negative = as_intw(x) < (intw)(0);
+    a = as_floatw((as_intw((floatw)(M_PI_F) - a) & negative) | (as_intw(a) & ~negative));
+    return as_floatw(as_intw(a) | (as_intw(y) & (intw)(0x80000000)));
+}
+
+/* solid_angle lane by lane, of the triangles whose corners are the rows
+ * c[0..8] (a record's CORNER_ROWS); forced inline (PoCL 3 kept it out of
+ * line, and its float8 result went through memory). */
+__attribute__((always_inline)) inline floatw solid_angles(float3 q, __global const floatw *c,
+                                                          float scale) {
+    const floatw ax = DIFF(c[0], (floatw)(q.x)), ay = DIFF(c[1], (floatw)(q.y)),
+                 az = DIFF(c[2], (floatw)(q.z));
+    const floatw bx = DIFF(c[3], (floatw)(q.x)), by = DIFF(c[4], (floatw)(q.y)),
+                 bz = DIFF(c[5], (floatw)(q.z));
+    const floatw cx = DIFF(c[6], (floatw)(q.x)), cy = DIFF(c[7], (floatw)(q.y)),
+                 cz = DIFF(c[8], (floatw)(q.z));
+    const floatw la = SQRTW(ax * ax + ay * ay + az * az);
+    const floatw lb = SQRTW(bx * bx + by * by + bz * bz);
+    const floatw lc = SQRTW(cx * cx + cy * cy + cz * cz);
+    const floatw num = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) +
+                       az * (bx * cy - by * cx);
+    const floatw den = la * lb * lc + (ax * bx + ay * by + az * bz) * lc +
+                       (ax * cx + ay * cy + az * cz) * lb + (bx * cx + by * cy + bz * cz) * la;
+    return (floatw)(2.0f) * atan2_polyw(num, den);
+}
 #endif
 
 __kernel void winding_numbers(__global const float4 *nodes, __global const float *moments,
@@ -202,7 +247,7 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
         int record = root;
         for (;;) {
             if (visits++ < num_nodes) {
-                __global const floatw *m = rows + ROWS * record;
+                __global const floatw *m = rows + RECORD_ROWS * record;
                 const floatw rx = DIFF(m[0], (floatw)(q.x)), ry = DIFF(m[1], (floatw)(q.y)),
                              rz = DIFF(m[2], (floatw)(q.z));
                 const floatw r2 = rx * rx + ry * ry + rz * rz;
@@ -224,13 +269,20 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
                 /* term where far (and not an empty lane), +0 elsewhere: a mask, not
                  * select(), which PoCL 3 calls out of line */
                 w += lanes_sum(as_floatw(as_intw(term) & (far & (m[3] >= (floatw)(0.0f)))));
-                /* the near lanes: a leaf's triangles summed, a record pushed */
+                /* the near leaves' first triangles, lane by lane from the record's
+                 * corner rows; then the near lanes one by one: the rest of a leaf's
+                 * triangles summed, a record pushed */
                 __global const int *ref = words + 8 * WIDTH * record + 6 * WIDTH;
-                for (uint bits = lane_bits(~far); bits != 0u; bits &= bits - 1u) {
+                const intw y_row = ((__global const intw *)words)[8 * record + 7];
+                const intw near_leaf = ~far & (y_row < (intw)(0));
+                if (lane_bits(near_leaf) != 0u)
+                    w += lanes_sum(as_floatw(as_intw(solid_angles(q, m + ROWS, scale)) & near_leaf));
+                for (uint bits = lane_bits(~far & (y_row < (intw)(-1) | y_row >= (intw)(0)));
+                     bits != 0u; bits &= bits - 1u) {
                     const int c = lowest_lane(bits);
                     const int x = ref[c], y = ref[WIDTH + c];
                     if (node_is_leaf(y)) {
-                        LEAF_SUM(x, x - y);
+                        LEAF_SUM(x + 1, x - y);
                     } else if (top < STACK_SIZE) {
                         stack[top++] = x;
                     } else {

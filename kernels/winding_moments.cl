@@ -30,9 +30,13 @@
  * per node, winding_moments.py NODE_ERROR).
  *
  * Defines: ORDER (1 or 2, default 2); WIDE_OUT (0 or 1): the rows go into
- * wide records (records, ROWS, WIDTH), each node to the lane that holds it
- * (lane_slots), instead of one row of ROWS floats per node; WIDTH (4 or 8)
- * with WIDE_OUT.
+ * wide records (records, RECORD_ROWS, WIDTH), each node to the lane that holds
+ * it (lane_slots), instead of one row of ROWS floats per node; WIDTH (4 or 8)
+ * with WIDE_OUT. A record's rows are the ROWS of its lanes' moments, then
+ * CORNER_ROWS: the corners of the first triangle of each leaf lane (x, y, z
+ * of its first corner, then the second, the third; the float32 vertices as
+ * they are), zeros in the other lanes, which winding.cl sums lane by lane
+ * where the leaf is near (winding_moments.py lane_corners).
  */
 #include "common.h"
 
@@ -56,6 +60,8 @@
 #ifndef WIDE_OUT
 #define WIDE_OUT 0
 #endif
+#define CORNER_ROWS 9
+#define RECORD_ROWS (ROWS + CORNER_ROWS)
 #ifndef WIDTH
 #define WIDTH 8
 #endif
@@ -181,9 +187,31 @@ inline void store_rows(__global const float *nodes, __global const int *slot, in
     const int item = slot[node] - 1;
     if (item < 0) return;
     write_rows(nodes, node, s, shift, scale, far_divisor,
-               out + (long)(item / WIDTH) * ROWS * WIDTH + item % WIDTH, WIDTH);
+               out + (long)(item / WIDTH) * RECORD_ROWS * WIDTH + item % WIDTH, WIDTH);
 #else
     write_rows(nodes, node, s, shift, scale, far_divisor, out + (long)ROWS * node, 1);
+#endif
+}
+
+/* WIDE_OUT: the corner rows of node `node`'s lane, if a lane holds it: the
+ * corners of the triangle in slot `first` for a leaf (first >= 0), zeros for
+ * an internal node (first < 0). */
+inline void store_corners(__global const float *vertices, __global const uint *faces,
+                          __global const int *prim_order, __global const int *slot, int node,
+                          int first, __global float *out) {
+#if WIDE_OUT
+    const int item = slot[node] - 1;
+    if (item < 0) return;
+    __global float *o = out + (long)(item / WIDTH) * RECORD_ROWS * WIDTH + ROWS * WIDTH + item % WIDTH;
+    if (first < 0) {
+        for (int r = 0; r < CORNER_ROWS; ++r) o[r * WIDTH] = 0.0f;
+        return;
+    }
+    const int t = prim_order[first];
+    for (int k = 0; k < 3; ++k) {
+        const uint v = faces[3 * t + k];
+        for (int j = 0; j < 3; ++j) o[(3 * k + j) * WIDTH] = vertices[3 * v + j];
+    }
 #endif
 }
 
@@ -199,8 +227,8 @@ __kernel void lane_slots(__global const int *lanes, __global int *slot, __global
         if (node >= 0) {
             slot[node] = item + 1;
         } else {
-            __global float *o = out + (long)(item / WIDTH) * ROWS * WIDTH + item % WIDTH;
-            for (int r = 0; r < ROWS; ++r) o[r * WIDTH] = r == 3 || r == ROWS - 1 ? -1.0f : 0.0f;
+            __global float *o = out + (long)(item / WIDTH) * RECORD_ROWS * WIDTH + item % WIDTH;
+            for (int r = 0; r < RECORD_ROWS; ++r) o[r * WIDTH] = r == 3 || r == ROWS - 1 ? -1.0f : 0.0f;
         }
     }
 }
@@ -229,6 +257,7 @@ __kernel void moments(__global const float *vertices, __global const uint *faces
         leaf_sums(vertices, faces, prim_order, words[8 * at + 3], -words[8 * at + 7], shift,
                   scale, s);
         store_rows(nodes, slot, at, s, shift, scale, far_divisor, out);
+        store_corners(vertices, faces, prim_order, slot, at, words[8 * at + 3], out);
         for (;;) {
             const int p = parent[at];
             if (p < 0) break;
@@ -250,6 +279,7 @@ __kernel void moments(__global const float *vertices, __global const uint *faces
             }
             for (int i = 0; i < TERMS; ++i) sums[(long)TERMS * p + i] = s[i];
             store_rows(nodes, slot, p, s, shift, scale, far_divisor, out);
+            store_corners(vertices, faces, prim_order, slot, p, -1, out);
             at = p;
         }
     }

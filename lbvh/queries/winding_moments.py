@@ -39,13 +39,16 @@ from .wide import Wide
 KERNEL_FILE = "winding_moments.cl"
 
 __all__ = ["DEFAULT_ORDER", "ROWS_ORDER1", "ROWS_ORDER2", "NODE_ERROR", "node_moments",
-           "wide_moments", "read_lanes", "make_moments", "device_can_make", "kernel_defines",
+           "wide_moments", "lane_corners", "CORNER_ROWS", "read_lanes", "make_moments", "device_can_make", "kernel_defines",
            "winding_scale", "scale_of_box"]
 
 #: Floats per node of the first-order moments (:func:`node_moments` with ``order=1``).
 ROWS_ORDER1 = 17
 #: Floats per node with the second-order terms (``order=2``, the default).
 ROWS_ORDER2 = 38
+#: Rows a wide record holds after its lanes' moments: the corners of each leaf lane's
+#: first triangle (:func:`lane_corners`).
+CORNER_ROWS = 9
 #: The error allowed per far node, estimated as ``A / (4 pi r^2) * (R / r)^3`` (``A``
 #: the node's triangle area, ``r`` the point's distance to ``p``): its solid angle's
 #: bound times the relative error of the second-order expansion, ``(R / r)^3`` (Barill
@@ -238,20 +241,40 @@ def node_moments(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices:
     return np.ascontiguousarray(out.T)
 
 
-def wide_moments(moments: np.ndarray, lanes: np.ndarray) -> np.ndarray:
-    """``float32 (records, rows, width)``: what kernels/winding.cl reads of each wide
-    record (WIDE=1), ``rows`` those of ``moments`` (38 or 17): row ``k`` holds
+def lane_corners(lanes: np.ndarray, nodes: np.ndarray, prim_order: np.ndarray,
+                 vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``float32 (records, CORNER_ROWS, width)``: the corners of the first triangle
+    (slot) of each leaf lane of the wide records (``lanes``, as :func:`wide_moments`
+    takes them; ``nodes`` and ``prim_order`` the binary tree's), rows x, y, z of its
+    first corner, then of the second and the third, the float32 vertices as they are;
+    zeros in a lane that is not a leaf or is empty. kernels/winding.cl sums the near
+    leaves' first triangles from these rows, lane by lane, instead of one by one
+    through the faces (kernels/winding_moments.cl ``store_corners``, its twin)."""
+    lanes = np.asarray(lanes)
+    node = np.maximum(lanes, 0)
+    leaf = (lanes >= 0) & is_leaf(nodes)[node]
+    first = prim_range_of(nodes)[node, 0]
+    tri = np.asarray(faces, np.int64)[np.asarray(prim_order, np.int64)[np.where(leaf, first, 0)]]
+    corners = np.asarray(vertices, np.float32)[tri].reshape(*lanes.shape, CORNER_ROWS)
+    corners[~leaf] = 0.0
+    return np.ascontiguousarray(corners.transpose(0, 2, 1))
+
+
+def wide_moments(moments: np.ndarray, lanes: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """``float32 (records, rows + CORNER_ROWS, width)``: what kernels/winding.cl reads of
+    each wide record (WIDE=1), ``rows`` those of ``moments`` (38 or 17): row ``k`` holds
     ``moments[:, k]`` (:func:`node_moments`) of each lane's binary node (``lanes``,
     ``int32 (records, width)``, -1 for an empty lane, as :class:`lbvh.queries.wide.Wide`
     keeps them); an empty lane has zeros and ``R^2`` and the far floor ``-1``, so the
-    kernel takes it for far and adds nothing."""
+    kernel takes it for far and adds nothing. The last :data:`CORNER_ROWS` are
+    ``corners`` (:func:`lane_corners`)."""
     lanes = np.asarray(lanes)
     out = np.asarray(moments, np.float32)[np.maximum(lanes, 0)].transpose(0, 2, 1).copy()
     empty = np.broadcast_to((lanes < 0)[:, None, :], out.shape)
     out[empty] = 0.0
     out[:, 3][lanes < 0] = -1.0
     out[:, -1][lanes < 0] = -1.0
-    return out
+    return np.concatenate([out, np.asarray(corners, np.float32)], axis=1)
 
 
 def read_lanes(ctx: dev.Context, wide: Wide) -> np.ndarray:
@@ -285,9 +308,9 @@ def device_can_make(ctx: dev.Context, num_nodes: int, order: int) -> bool:
 
 def make_moments(ctx: dev.Context, tree: Tree, mesh: Mesh, wide: Wide | None,
                  order: int = DEFAULT_ORDER) -> cl.Buffer:
-    """The moments on the device: ``float32 (records, rows, width)`` in the rows of
-    ``wide``'s records where they are packed (:func:`wide_moments`), else ``float32
-    (num_nodes, rows)`` (:func:`node_moments`); ``rows`` 38 (``order=2``) or 17.
+    """The moments on the device: ``float32 (records, rows + CORNER_ROWS, width)`` in the
+    rows of ``wide``'s records where they are packed (:func:`wide_moments`), else
+    ``float32 (num_nodes, rows)`` (:func:`node_moments`); ``rows`` 38 (``order=2``) or 17.
 
     Made by kernels/winding_moments.cl where :func:`device_can_make`, else by the
     twins on the host. The caller holds ``ctx.lock`` and owns the buffer returned.
@@ -304,13 +327,16 @@ def make_moments(ctx: dev.Context, tree: Tree, mesh: Mesh, wide: Wide | None,
         cl.enqueue_copy(ctx.queue, prim_order, tree.prim_order, is_blocking=True)
         moments = node_moments(nodes, prim_order, tree.root, mesh.vertices, mesh.faces, order)
         if into_records:
-            moments = wide_moments(moments, read_lanes(ctx, wide))
+            lanes = read_lanes(ctx, wide)
+            moments = wide_moments(moments, lanes, lane_corners(lanes, nodes, prim_order,
+                                                                mesh.vertices, mesh.faces))
         return mem.upload(moments)
     sx, sy, sz = (np.float64(s) for s in _centre(*mesh.bounds))
     scale = np.float64(scale_of_box(*mesh.bounds))
     width = wide.width if into_records else None
     defines = kernel_defines(order, width)
-    out = mem.alloc(4 * rows * (wide.count * wide.width if into_records else tree.num_nodes))
+    out = mem.alloc(4 * (wide.count * wide.width * (rows + CORNER_ROWS) if into_records
+                         else rows * tree.num_nodes))
     sums = mem.alloc(8 * TERMS[order] * tree.num_nodes)
     arrivals = mem.alloc(4 * tree.num_nodes)
     slot = mem.alloc(4 * tree.num_nodes) if into_records else None

@@ -14,8 +14,9 @@ from conftest import shared_mesh, shipped_mesh
 from lbvh.queries.closest import closest_points_numpy
 from lbvh.queries.winding import expansion_numpy, winding_numbers_numpy
 from lbvh.queries import winding_moments as wm
-from lbvh.queries.winding_moments import (ROWS_ORDER1, ROWS_ORDER2, make_moments, node_moments,
-                                          read_lanes, wide_moments, _triangle_terms)
+from lbvh.queries.winding_moments import (CORNER_ROWS, ROWS_ORDER1, ROWS_ORDER2, lane_corners,
+                                          make_moments, node_moments, read_lanes, wide_moments,
+                                          _triangle_terms)
 from lbvh.queries import winding
 from lbvh.verification import hard_cases, meshes
 from lbvh.verification.error_bound import INSIDE_TOLERANCE, WINDING_BOUND
@@ -176,8 +177,11 @@ def test_wide_moments_are_the_lanes_moments():
     wide = bvh.wide_records(width=8)
     lanes = read_lanes(bvh.ctx, wide)
     m = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f)
-    rows = wide_moments(m, lanes)
-    assert rows.shape == (wide.count, ROWS_ORDER2, 8) and rows.dtype == np.float32
+    corners = lane_corners(lanes, bvh.nodes, bvh.prim_order, v, f)
+    rows = wide_moments(m, lanes, corners)
+    assert rows.shape == (wide.count, ROWS_ORDER2 + CORNER_ROWS, 8) and rows.dtype == np.float32
+    assert np.array_equal(rows[:, ROWS_ORDER2:], corners)
+    rows = rows[:, :ROWS_ORDER2]
     present = lanes >= 0
     assert (~present).any()
     used = lanes[present]   # distinct nodes, every leaf among them
@@ -189,11 +193,38 @@ def test_wide_moments_are_the_lanes_moments():
     assert (np.delete(empty, [3, ROWS_ORDER2 - 1], axis=1) == 0).all()
 
 
+@pytest.mark.parametrize("collapse", [False, True])
+def test_lane_corners_are_each_leafs_first_triangle(collapse):
+    """The corner rows of a wide record: lane c of a leaf holds the corners of the
+    triangle in that leaf's first slot, in the order x0 y0 z0 x1 ... z2; any other
+    lane (internal node, empty) zeros. Checked against the faces through prim_order
+    one leaf at a time, on a tree of one-triangle leaves and a collapsed one."""
+    v, f = meshes.soup(600, 3, 0.05, spread="normal")
+    bvh = lbvh.build(v, f, collapse=collapse)
+    wide = bvh.wide_records(width=8)
+    lanes = read_lanes(bvh.ctx, wide)
+    corners = lane_corners(lanes, bvh.nodes, bvh.prim_order, v, f)
+    assert corners.shape == (wide.count, CORNER_ROWS, 8) and corners.dtype == np.float32
+    leaves = 0
+    for r, c in zip(*np.nonzero(lanes >= -1)):
+        node = lanes[r, c]
+        got = corners[r, :, c]
+        if node >= 0 and bvh.is_leaf[node]:
+            first = bvh.nodes["a"][node]
+            assert np.array_equal(got, v[f[bvh.prim_order[first]]].reshape(9))
+            leaves += 1
+        else:
+            assert (got == 0).all()
+    assert leaves == int(bvh.is_leaf.sum())
+    if collapse:
+        assert (bvh.nodes["b"][bvh.is_leaf] < -1).any()   # leaves of several triangles
+
+
 def _device_moments(bvh, wide, order):
     buf = make_moments(bvh.ctx, bvh.tree, bvh.mesh, wide, order)
     rows = ROWS_ORDER1 if order == 1 else ROWS_ORDER2
-    shape = (wide.count, rows, wide.width) if wide is not None and wide.packed and wide.count \
-        else (bvh.num_nodes, rows)
+    shape = (wide.count, rows + CORNER_ROWS, wide.width) \
+        if wide is not None and wide.packed and wide.count else (bvh.num_nodes, rows)
     got = np.empty(shape, np.float32)
     cl.enqueue_copy(bvh.ctx.queue, got, buf, is_blocking=True)
     bvh.ctx.memory.free(buf)
@@ -227,7 +258,8 @@ def test_device_moments_are_the_twins_bit_for_bit(case):
                 assert bvh.num_nodes == 1   # a root leaf: no records, one row per node
                 assert np.array_equal(_device_moments(bvh, wide, order), twin)
                 continue
-            rows = wide_moments(twin, read_lanes(bvh.ctx, wide))
+            lanes = read_lanes(bvh.ctx, wide)
+            rows = wide_moments(twin, lanes, lane_corners(lanes, bvh.nodes, bvh.prim_order, v, f))
             assert np.array_equal(_device_moments(bvh, wide, order), rows)
     # and the winding numbers read them (not far_from_origin: on its 0.5 grid of float32
     # coordinates many points lie on a triangle, where w is 1/2 either way)
