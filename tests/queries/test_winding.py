@@ -438,6 +438,23 @@ def test_bunny_with_its_holes():
     assert np.array_equal(bvh.contains(p), exact > 0.5)
 
 
+def test_sponza_point_where_small_nodes_add_up():
+    """A point of the bench's Sponza set (bench_queries.query_points, 2^20 points,
+    index 52,677) where six small far nodes at 1.31-1.36 radii were each off by
+    0.007-0.015, all of one sign: 0.058 from the exact sum at beta = 1.3, past
+    WINDING_BOUND; the default beta (1.35) opens them. The binary and the wide walk."""
+    v, f = shared_mesh("crytek_sponza.obj")
+    q = np.float32([[float.fromhex("0x1.5f8d68p+6"), float.fromhex("-0x1.aab954p+1"),
+                     float.fromhex("-0x1.b9d454p+4")]])
+    exact = winding_numbers_numpy(v, f, q)
+    bvh = lbvh.build(v, f)
+    binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
+    assert not binary.wide_records(max_bytes=0).packed
+    for tree in (bvh, binary):
+        assert abs(tree.winding_numbers(q)[0] - exact[0]) <= WINDING_BOUND
+    assert abs(bvh.winding_numbers(q, beta=1.3)[0] - exact[0]) > WINDING_BOUND
+
+
 @pytest.mark.parametrize("name", ["cube_sphere", "icosphere", "box"])
 def test_contains_agrees_with_trimesh_and_the_exact_sign(name):
     pytest.importorskip("rtree")   # trimesh's own ray test needs it
