@@ -34,8 +34,10 @@
  *   STACK_SIZE=n  stack entries; a push beyond n sets FLAG_OVERFLOW and skips
  *                 that subtree (the host sizes it from the tree's depth).
  *   NO_FP64=1     float32 arithmetic even where the device has doubles (tests).
- *   POINT_ORDER=1 work-item k answers point order[k] (a permutation); the
- *                 answers stay in the points' own slots.
+ *   POINT_ORDER=1 work-item k answers point order[k] (a permutation), which
+ *                 `points` holds at k (ray_order.cl, gather_points: read as one
+ *                 run, where reading order[k]'s own slot missed the cache once a
+ *                 point); the answers stay in the points' own slots.
  *   WIDE=1        walk the wide records (`records`, the root as the reference
  *                 (root_x, root_y)) instead of the binary nodes; WIDTH=4 or 8
  *                 lanes per record (kernels/wide_rows.h).
@@ -103,7 +105,7 @@ typedef union { real4 h[2]; real s[8]; } real8_lanes;
         }                                                                                  \
     }
 
-/* Query i: points[3i..]; results: distance, the closest point (3 floats),
+/* Query i: points[3k..] (the points in order[]'s order, or i = k); results: distance, the closest point (3 floats),
  * triangle (original numbering, -1 when nothing is within max_distance),
  * barycentrics u, v of the point on its triangle (q = (1-u-v) p0 + u p1 + v p2
  * with the triangle's own vertex order), flags. */
@@ -119,7 +121,7 @@ __kernel void closest_points(__global const float4 *nodes, __global const float 
     const int k = get_global_id(0);
     if (k >= count) return;
     const int i = point_index(order, k);
-    const real3 p = to_real3(load_float3(points, i));
+    const real3 p = to_real3(load_float3(points, k));
     real best2 = (real)max_distance * (real)max_distance;
     int best_slot = -1;
     real best_v = 0, best_w = 0;
