@@ -202,7 +202,8 @@ inline void store_corners(__global const float *vertices, __global const uint *f
 #if WIDE_OUT
     const int item = slot[node] - 1;
     if (item < 0) return;
-    __global float *o = out + (long)(item / WIDTH) * RECORD_ROWS * WIDTH + ROWS * WIDTH + item % WIDTH;
+    __global float *o =
+        out + (long)(item / WIDTH) * RECORD_ROWS * WIDTH + ROWS * WIDTH + item % WIDTH;
     if (first < 0) {
         for (int r = 0; r < CORNER_ROWS; ++r) o[r * WIDTH] = 0.0f;
         return;
@@ -228,7 +229,8 @@ __kernel void lane_slots(__global const int *lanes, __global int *slot, __global
             slot[node] = item + 1;
         } else {
             __global float *o = out + (long)(item / WIDTH) * RECORD_ROWS * WIDTH + item % WIDTH;
-            for (int r = 0; r < RECORD_ROWS; ++r) o[r * WIDTH] = r == 3 || r == ROWS - 1 ? -1.0f : 0.0f;
+            for (int r = 0; r < RECORD_ROWS; ++r)
+                o[r * WIDTH] = r == 3 || r == ROWS - 1 ? -1.0f : 0.0f;
         }
     }
 }

@@ -7,7 +7,8 @@ the radius ``R`` of the node about it, the sum ``N`` of the vector areas, the
 first moment ``M`` and, to the second order, the contracted ``H_ijk``
 (:func:`node_moments` says which floats, in which order). A tree makes them
 once, at its first inside query, and :class:`lbvh.BVH` keeps them with the
-wide records they follow (:func:`wide_moments`: the lanes' moments in rows).
+wide records they follow (:func:`wide_moments`: the lanes' moments in rows,
+then the corners of each leaf lane's first triangle, :func:`lane_corners`).
 
 :func:`make_moments` makes them on the device where it has doubles
 (cl_khr_fp64; PoCL has): a bottom-up walk per leaf sums each node's
@@ -38,9 +39,9 @@ from .wide import Wide
 
 KERNEL_FILE = "winding_moments.cl"
 
-__all__ = ["DEFAULT_ORDER", "ROWS_ORDER1", "ROWS_ORDER2", "NODE_ERROR", "node_moments",
-           "wide_moments", "lane_corners", "CORNER_ROWS", "read_lanes", "make_moments", "device_can_make", "kernel_defines",
-           "winding_scale", "scale_of_box"]
+__all__ = ["DEFAULT_ORDER", "ROWS_ORDER1", "ROWS_ORDER2", "CORNER_ROWS", "NODE_ERROR",
+           "node_moments", "wide_moments", "lane_corners", "read_lanes", "make_moments",
+           "device_can_make", "kernel_defines", "winding_scale", "scale_of_box"]
 
 #: Floats per node of the first-order moments (:func:`node_moments` with ``order=1``).
 ROWS_ORDER1 = 17
