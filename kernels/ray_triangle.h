@@ -278,8 +278,14 @@ inline int slab(__global const float *box, const Ray *ray, float limit,
  * after rounding their projected edge functions can all share a sign. A
  * triangle is degenerate when |e1 x e2| <= 2^-20 |e1| |e2|, evaluated on the
  * edges scaled to a largest component of 1 (no overflow or underflow). Called
- * only for a hit that would be accepted, so it costs nothing on the way. */
+ * only for a hit that would be accepted, so it costs nothing on the way.
+ * DEGENERATE_TEST=0 leaves the test out, for triangles read from
+ * traverse.cl's order_triangles, which has made each degenerate one a point
+ * (its three corners its first: no hit, U = V = W = 0 and det = 0). */
 #define DEGENERATE_SINE2 0x1p-40f
+#ifndef DEGENERATE_TEST
+#define DEGENERATE_TEST 1
+#endif
 inline float max_abs3(float x, float y, float z) {
     x = x < 0.0f ? -x : x;
     y = y < 0.0f ? -y : y;
@@ -352,7 +358,9 @@ inline int accept_hit(__global const float *vertices, int i0, int i1, int i2, co
     }
     th = max_keep(t0, th);
     if (!(th <= ray->tmax && th < best)) return 0;
+#if DEGENERATE_TEST
     if (degenerate(vertices, i0, i1, i2)) return 0;
+#endif
     *t = th;
     return 1;
 }

@@ -192,8 +192,12 @@ __kernel void order_triangles(__global const float *vertices, __global const uin
     const int last = chunk_last(gid, per_item, num_prims);
     for (int s = chunk_first(gid, per_item, num_prims); s < last; ++s) {
         const int t = prim_order[s];
+        /* a degenerate triangle (ray_triangle.h, the same test) as a point: its
+         * first corner three times, which no ray hits */
+        const int point = degenerate(vertices, 3 * (int)faces[3 * t], 3 * (int)faces[3 * t + 1],
+                                     3 * (int)faces[3 * t + 2]);
         for (int j = 0; j < 3; ++j) {
-            const uint v = faces[3 * t + j];
+            const uint v = faces[3 * t + (point ? 0 : j)];
             slot_triangles[9 * s + 3 * j] = vertices[3 * v];
             slot_triangles[9 * s + 3 * j + 1] = vertices[3 * v + 1];
             slot_triangles[9 * s + 3 * j + 2] = vertices[3 * v + 2];

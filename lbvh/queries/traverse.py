@@ -385,7 +385,9 @@ def order_faces(tree: Tree, mesh: Mesh) -> cl.Buffer:
 
 def order_triangles(tree: Tree, mesh: Mesh) -> cl.Buffer:
     """``float32 (F, 3, 3)`` on the device: ``vertices[faces[prim_order]]``, each slot's
-    triangle as its three corners (kernels/traverse.cl, order_triangles; twin:
+    triangle as its three corners, a degenerate one (kernels/ray_triangle.h
+    ``degenerate``: zero area, which no ray hits) as its first corner three times
+    (kernels/traverse.cl, order_triangles; twin:
     :func:`order_triangles_numpy`), 36 bytes per slot, which the every-hit walk reads
     instead of going through the faces (kernels/every_hit.h ``SLOT_TRIANGLES``).
     :class:`lbvh.BVH` makes it on first use and keeps it until a refit moves the
@@ -400,8 +402,17 @@ def order_triangles(tree: Tree, mesh: Mesh) -> cl.Buffer:
 
 def order_triangles_numpy(vertices: np.ndarray, faces: np.ndarray,
                           prim_order: np.ndarray) -> np.ndarray:
-    """Twin of :func:`order_triangles`: ``float32 (S, 3, 3)``, the same values (copies)."""
-    return np.asarray(vertices, np.float32)[np.asarray(faces)[np.asarray(prim_order)]]
+    """Twin of :func:`order_triangles`: ``float32 (S, 3, 3)``, the same values (copies),
+    a degenerate triangle (:func:`lbvh.verification.oracle.degenerate_triangles` in
+    float32, the kernel's test) as its first corner three times."""
+    from ..verification.oracle import degenerate_triangles   # it imports this module
+    v = np.asarray(vertices, np.float32)
+    slot_faces = np.asarray(faces)[np.asarray(prim_order)]
+    out = v[slot_faces]
+    with np.errstate(over="ignore", invalid="ignore"):   # edges past float32, as the kernel
+        point = degenerate_triangles(v, slot_faces, np.float32)
+    out[point] = out[point][:, :1]
+    return out
 
 
 # -- device-level entry -----------------------------------------------------------

@@ -22,6 +22,7 @@ from lbvh.layout import make_nodes
 from lbvh.verification.error_bound import t_bound  # the bound of the module docstring
 from lbvh.verification.oracle import brute_force, hits_on
 from lbvh.queries.wide import WIDTHS, read_records
+from lbvh.verification import hard_cases
 
 
 # -- scenes, trees and rays ----------------------------------------------------------
@@ -693,6 +694,48 @@ def test_triangles_in_slot_order_equal_their_numpy_twin(kind):
     want = order_triangles_numpy(bvh.vertices, bvh.faces, bvh.prim_order)
     assert want.shape == (bvh.num_slots, 3, 3)
     assert np.array_equal(got.view(np.uint32), want.view(np.uint32))
+
+
+@pytest.mark.parametrize("name", ["zero_area_mix", "slivers", "one_point", "far_from_origin",
+                                  "far_from_origin_1e7"])
+def test_slot_triangles_make_the_degenerate_ones_points(name):
+    """order_triangles writes a degenerate triangle (ray_triangle.h degenerate(), the
+    float32 twin oracle.degenerate_triangles) as its first corner three times and every
+    other one as it is, bit for bit its twin's; the every-hit walk, which reads them
+    and so leaves the degenerate test out (DEGENERATE_TEST=0), finds the hits of the
+    twin, which keeps it."""
+    from lbvh.queries.traverse import order_triangles_numpy
+    from lbvh.verification.oracle import all_hits_brute, degenerate_triangles
+    c = hard_cases.CASES[name]()
+    bvh = lbvh.build(c.vertices, c.faces)
+    got = np.empty((bvh.num_slots, 3, 3), np.float32)
+    cl.enqueue_copy(bvh.ctx.queue, got, bvh.slot_triangles(), is_blocking=True)
+    want = order_triangles_numpy(bvh.vertices, bvh.faces, bvh.prim_order)
+    assert np.array_equal(got.view(np.uint32), want.view(np.uint32))
+    slot_faces = bvh.faces[bvh.prim_order]
+    with np.errstate(all="ignore"):
+        point = degenerate_triangles(bvh.vertices, slot_faces, np.float32)
+    assert point.any()
+    plain = bvh.vertices[slot_faces]
+    assert np.array_equal(got[~point], plain[~point])
+    assert (got[point] == plain[point][:, :1]).all()
+    # the rays of the case and rays at the triangles' corners: the twin's hits, which
+    # keeps the degenerate test (oracle.all_hits_brute in float32)
+    rng = np.random.default_rng(3)
+    v64 = bvh.vertices.astype(np.float64)
+    pick = rng.integers(0, len(v64), (3, 400))
+    o2 = (v64[pick[0]] + v64[pick[1]]) / 2      # between two vertices, towards a third
+    d2 = v64[pick[2]] - o2
+    o = np.concatenate([c.origins[:400], o2]).astype(np.float32)
+    d = np.concatenate([c.directions[:400], d2]).astype(np.float32)
+    keep = (d != 0).any(axis=1) & np.isfinite(d).all(axis=1)
+    o, d = o[keep], d[keep]
+    twin = all_hits_brute(bvh.vertices, bvh.faces, o, d, dtype=np.float32)
+    assert (twin.total.sum() > 0) == (not point.all())   # one_point: nothing to hit
+    assert np.array_equal(bvh.count_hits(o, d), twin.total)
+    every = bvh.all_hits(o, d)
+    assert np.array_equal(every.offsets, twin.offsets) and np.array_equal(every.prim, twin.prim)
+    assert np.array_equal(every.t, twin.t)
 
 
 def _same_hits(a, b, v, f, o, d, context):
