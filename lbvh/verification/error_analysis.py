@@ -98,8 +98,8 @@ def pair_geometry(case: Case, ray: np.ndarray, tri: np.ndarray, degenerate32: np
                   degenerate64: np.ndarray) -> PairGeometry:
     """:class:`PairGeometry` of the pairs (``ray[k]``, ``tri[k]``).
 
-    ``degenerate32/64`` (one per pair) say whether :func:`lbvh.verification.oracle.degenerate_triangles`
-    calls ``tri[k]`` degenerate in float32 (the kernel never hits those) and in
+    ``degenerate32/64`` (one per pair) say whether
+    :func:`lbvh.queries.traverse.degenerate_triangles` calls ``tri[k]`` degenerate in float32 (the kernel never hits those) and in
     float64 (the oracle's decision); triangles degenerate in one precision only
     may be hit or not.
     """

@@ -49,10 +49,8 @@ import numpy as np
 
 from ..mesh import as_faces, as_vertices
 from ..queries.all_hits import AllHits
-from ..queries.traverse import Hits, check_rays
-
-#: Sine of the angle between two edges below which the oracle calls a triangle degenerate.
-DEGENERATE_SINE = 2.0 ** -20
+# the kernel's degenerate test and its twin live with the walks that read it
+from ..queries.traverse import DEGENERATE_SINE, Hits, check_rays, degenerate_triangles
 #: Triangles per culling block, and the blocks' padding relative to the scene's scale.
 BLOCK_SIZE = 16
 BLOCK_PADDING = 1e-6
@@ -73,27 +71,6 @@ def woop_axes(directions: np.ndarray) -> np.ndarray:
     swap = directions[np.arange(len(directions)), kz] < 0
     kx, ky = np.where(swap, ky, kx), np.where(swap, kx, ky)
     return np.stack([kx, ky, kz], axis=1).astype(np.int64)
-
-
-def degenerate_triangles(vertices: np.ndarray, faces: np.ndarray, dtype=np.float64) -> np.ndarray:
-    """``bool (F,)``: zero-area triangles, as the kernel decides it (in ``dtype``).
-
-    ``|e1 x e2| <= 2^-20 |e1| |e2|`` with ``e1 = p1 - p0``, ``e2 = p2 - p0``
-    each scaled to a largest component of 1; an edge of length zero is
-    degenerate. Same operations, same order as ``degenerate()`` in the kernel.
-    """
-    p = vertices[faces].astype(dtype) * dtype(0.5)  # halved: the edges cannot overflow
-    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-    s1, s2 = np.abs(e1).max(axis=1), np.abs(e2).max(axis=1)
-    zero = (s1 == 0) | (s2 == 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a, b = e1 / s1[:, None], e2 / s2[:, None]
-        n = np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                      a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
-        nn = (n[:, 0] * n[:, 0] + n[:, 1] * n[:, 1]) + n[:, 2] * n[:, 2]
-        aa = (a[:, 0] * a[:, 0] + a[:, 1] * a[:, 1]) + a[:, 2] * a[:, 2]
-        bb = (b[:, 0] * b[:, 0] + b[:, 1] * b[:, 1]) + b[:, 2] * b[:, 2]
-        return zero | (nn <= dtype(DEGENERATE_SINE) ** 2 * aa * bb)
 
 
 #: make_ray's range of directions (kernels/traverse.cl): a direction whose largest

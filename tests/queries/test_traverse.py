@@ -700,7 +700,7 @@ def test_triangles_in_slot_order_equal_their_numpy_twin(kind):
                                   "far_from_origin_1e7"])
 def test_slot_triangles_make_the_degenerate_ones_points(name):
     """order_triangles writes a degenerate triangle (ray_triangle.h degenerate(), the
-    float32 twin oracle.degenerate_triangles) as its first corner three times and every
+    float32 twin traverse.degenerate_triangles) as its first corner three times and every
     other one as it is, bit for bit its twin's; the every-hit walk, which reads them
     and so leaves the degenerate test out (DEGENERATE_TEST=0), finds the hits of the
     twin, which keeps it."""
