@@ -38,7 +38,7 @@
  * computation too, from the corner rows (solid_angles): with one triangle a
  * leaf, as the default tree's, that read and sum of the corners one triangle
  * at a time through slot_faces was half the walk's time on Sponza (perf), and
- * the rows took it to 1.6x the points per second (bench/README.md). Every node
+ * the rows took it to 1.5x the points per second (bench/README.md). Every node
  * expanded meets the same test as in the binary walk; a node that the binary
  * walk expands but that is not a lane (a record's inner nodes, the root) is
  * expanded through its lanes instead, which is as close or closer.
@@ -262,7 +262,7 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
                 /* far (and not an empty lane): expanded; near: a leaf's first triangle
                  * summed from the corner rows, lane by lane, and the rest of it one by
                  * one; a record pushed. Each part only where a lane needs it: a record
-                 * near the point often has no far lane (1.15x on Sponza, bench/README.md). */
+                 * near the point often has no far lane (1.10x on Sponza, bench/README.md). */
                 const intw far_lanes = far & (m[3] >= (floatw)(0.0f));
                 const intw near_leaves = ~far & (y_row < (intw)(0));
                 if (lane_bits(far_lanes) != 0u) {
