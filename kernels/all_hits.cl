@@ -42,7 +42,8 @@
  *                 closest hit, the work any traversal must do for that ray
  *                 (the ray-sampled cost of lbvh/verification/quality.py).
  *   SLAB_PAD, NO_FP64: kernels/ray_triangle.h.
- *   RAY_BYTES, STREAM_FRAMES, STREAM_AHEAD (stream_hits_kernel): hit_streams.h.
+ *   RAY_BYTES, STREAM_FRAMES, STREAM_AHEAD, LANE_TRIANGLES (stream_hits_kernel):
+ *                 hit_streams.h.
  *
  * stream_hits_kernel (WIDE=1): either pass with the rays walked as streams
  * (hit_streams.h), the host's choice on a CPU: the same counts, hits and flags.

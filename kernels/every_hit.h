@@ -160,6 +160,32 @@ inline void sort_kept(long first, int n, __global float *out_t, __global float *
 }
 #endif
 
+/* Slot s's triangle's hit (t, u, v) of *ray counted in *found and, with COUNT=0,
+ * kept (hit_slot): t along the direction *ray was made from (make_ray's scaling
+ * undone), the triangle in prim_order's numbering and, with HIT_INSTANCE, `inst`. */
+inline void keep_hit(__global const int *prim_order, int s, float t, float u, float v,
+                     const Ray *ray, int inst, long first, int cap, __global float *out_t,
+                     __global float *out_u, __global float *out_v, __global int *out_prim,
+                     __global int *out_inst, int *found) {
+#if !COUNT
+    /* t along d * 2^-texp (make_ray) back to d; + 0.0f: no -0.0 */
+    if (ray->texp != 0) t = ldexp(t, -ray->texp);
+    t += 0.0f;
+    const int prim = prim_order[s];
+    const long slot = hit_slot(first, cap, *found, t, inst, prim, out_t, out_inst, out_prim);
+    if (slot >= 0) {
+        out_t[slot] = t;
+        out_u[slot] = u;
+        out_v[slot] = v;
+        out_prim[slot] = prim;
+#if HIT_INSTANCE
+        out_inst[slot] = inst;
+#endif
+    }
+#endif
+    ++*found;
+}
+
 /* Every hit of *ray among the `count` triangles of slots [s0, s0 + count): *found
  * counts them; with COUNT=0 they are kept in [first, first + cap) (hit_slot), t
  * along the direction *ray was made from (make_ray's scaling undone), the
@@ -179,23 +205,8 @@ inline void leaf_hits(__global const int *prim_order, __global const float *vert
                           3 * (int)slot_faces[3 * s + 2], ray, -1.0f, &t, &u, &v))
             continue;
 #endif
-#if !COUNT
-        /* t along d * 2^-texp (make_ray) back to d; + 0.0f: no -0.0 */
-        if (ray->texp != 0) t = ldexp(t, -ray->texp);
-        t += 0.0f;
-        const int prim = prim_order[s];
-        const long slot = hit_slot(first, cap, *found, t, inst, prim, out_t, out_inst, out_prim);
-        if (slot >= 0) {
-            out_t[slot] = t;
-            out_u[slot] = u;
-            out_v[slot] = v;
-            out_prim[slot] = prim;
-#if HIT_INSTANCE
-            out_inst[slot] = inst;
-#endif
-        }
-#endif
-        ++*found;
+        keep_hit(prim_order, s, t, u, v, ray, inst, first, cap, out_t, out_u, out_v, out_prim,
+                 out_inst, found);
     }
 }
 

@@ -14,7 +14,8 @@
  * each ray of the list gets the vector slab test of wide_slab.h, by the
  * same arithmetic, and is appended to the list of every record lane it
  * enters; the triangles of the leaf lanes it enters are tested there and
- * then, by leaf_hits (every_hit.h). The lists are read in order and their
+ * then: their first triangles in one vector computation (lane_triangle_hits,
+ * LANE_TRIANGLES), the rest by leaf_hits (every_hit.h). The lists are read in order and their
  * rays' data prefetched a few entries ahead (STREAM_AHEAD), so that the
  * loads overlap instead of waiting one on the next.
  *
@@ -38,7 +39,8 @@
  * Defines: WIDTH (wide_rows.h), STACK_SIZE (the per-ray walk's), RAY_BYTES
  * (the host's room for one Ray; the build fails where a Ray is larger),
  * STREAM_FRAMES (frames on a work-item's stack), STREAM_AHEAD (list entries
- * prefetched ahead; 0 for none), CLANG_PREFETCH (every_hit.h).
+ * prefetched ahead; 0 for none), CLANG_PREFETCH (every_hit.h), LANE_TRIANGLES
+ * (below).
  */
 #ifndef LBVH_HIT_STREAMS_H
 #define LBVH_HIT_STREAMS_H
@@ -106,6 +108,100 @@ inline void prefetch_stream_ray(__global const float4 *slabs, __global uchar *ra
 #endif
 }
 
+/* LANE_TRIANGLES: a ray's leaf lanes in a record have their first triangles tested
+ * in one vector computation (lane_triangle_hits), from the corners that the
+ * record's visit gathers once for its whole list (gather_lane_triangles); where
+ * the watertight test has its double fallback (ray_triangle.h WATERTIGHT_FP64)
+ * and the triangles are read in slot order (SLOT_TRIANGLES), else 0; the host
+ * may say 0 (tests: the same hits as the triangles one by one). */
+#ifndef LANE_TRIANGLES
+#if defined(WATERTIGHT_FP64) && SLOT_TRIANGLES
+#define LANE_TRIANGLES 1
+#else
+#define LANE_TRIANGLES 0
+#endif
+#elif LANE_TRIANGLES && !(defined(WATERTIGHT_FP64) && SLOT_TRIANGLES)
+#error "LANE_TRIANGLES=1 needs the double fallback and SLOT_TRIANGLES"
+#endif
+
+#if LANE_TRIANGLES
+/* tri[3 v + a], lane c: axis a of corner v of the first triangle of leaf lane c
+ * (slot ref[c]'s, SLOT_TRIANGLES), for the lanes set in leaf_lanes; 0 in the
+ * others. */
+inline void gather_lane_triangles(__global const float *vertices, __global const int *ref,
+                                  uint leaf_lanes, floatw_lanes *tri) {
+    for (int j = 0; j < 9; ++j) tri[j].v = (floatw)(0.0f);
+    for (uint m = leaf_lanes; m != 0u; m &= m - 1u) {
+        const int c = lowest_lane(m);
+        __global const float *p = vertices + 9 * ref[c];
+        for (int j = 0; j < 9; ++j) tri[j].s[c] = p[j];
+    }
+}
+
+/* hit_triangle (ray_triangle.h, the watertight test) of *ray, not a hard one,
+ * against the triangles of `tri` in the lanes set in `lanes` at once, by the
+ * same operations lane by lane, so the same decisions and the same t, u, v;
+ * each hit that accept_hit takes is counted and kept by keep_hit, the lanes in
+ * ascending order. Returns the lanes whose test takes the double fallback
+ * (an edge function, det or T outside float32's normal range): the caller
+ * tests those triangles by hit_triangle. Forced inline: its rows stay in
+ * registers. */
+__attribute__((always_inline)) inline uint
+lane_triangle_hits(const floatw_lanes *tri, __global const int *ref,
+                   __global const int *prim_order, __global const float *vertices,
+                   const Ray *ray, uint lanes, long first, int cap, __global float *out_t,
+                   __global float *out_u, __global float *out_v, __global int *out_prim,
+                   int *found) {
+    const int kx = ray->kx, ky = ray->ky, kz = ray->kz;
+    const floatw px = (floatw)(ray->px), py = (floatw)(ray->py), pz = (floatw)(ray->pz);
+    const floatw ex = (floatw)(ray->ex), ey = (floatw)(ray->ey), ez = (floatw)(ray->ez);
+    const floatw sz = (floatw)(ray->sz);
+    floatw_lanes az, bz, cz, pax, pay, pbx, pby, pcx, pcy, det, T, V, W;
+    az.v = tri[kz].v - pz;
+    bz.v = tri[3 + kz].v - pz;
+    cz.v = tri[6 + kz].v - pz;
+    pax.v = tri[kx].v - px; pay.v = tri[ky].v - py;
+    pbx.v = tri[3 + kx].v - px; pby.v = tri[3 + ky].v - py;
+    pcx.v = tri[6 + kx].v - px; pcy.v = tri[6 + ky].v - py;
+    const floatw ax = pax.v * ez - az.v * ex;
+    const floatw ay = pay.v * ez - az.v * ey;
+    const floatw bx = pbx.v * ez - bz.v * ex;
+    const floatw by = pby.v * ez - bz.v * ey;
+    const floatw cx = pcx.v * ez - cz.v * ex;
+    const floatw cy = pcy.v * ez - cz.v * ey;
+    const floatw U = cx * by - cy * bx;
+    V.v = ax * cy - ay * cx;
+    W.v = bx * ay - by * ax;
+    det.v = U + V.v + W.v;
+    T.v = U * (sz * az.v) + V.v * (sz * bz.v) + W.v * (sz * cz.v);
+    /* hit_triangle's fallback and sign tests, as masks */
+    const intw magnitude = (intw)(0x7fffffff);
+    const floatw lo = (floatw)(FLT_MIN), hi = (floatw)(FLT_MAX);
+    const floatw aU = as_floatw(as_intw(U) & magnitude), aV = as_floatw(as_intw(V.v) & magnitude);
+    const floatw aW = as_floatw(as_intw(W.v) & magnitude);
+    const floatw adet = as_floatw(as_intw(det.v) & magnitude);
+    const floatw aT = as_floatw(as_intw(T.v) & magnitude);
+    const intw normal = (aU >= lo) & (aV >= lo) & (aW >= lo) & (adet >= lo) & (adet <= hi) &
+                        (aT >= lo) & (aT <= hi);
+    const floatw zero = (floatw)(0.0f);
+    const intw inside = ((U > zero) & (V.v > zero) & (W.v > zero)) |
+                        ((U < zero) & (V.v < zero) & (W.v < zero));
+    const uint fallback = lanes & ~lane_bits(normal);
+    for (uint m = lanes & lane_bits(normal & inside); m != 0u; m &= m - 1u) {
+        const int c = lowest_lane(m);
+        const int s = ref[c];
+        float t = T.s[c] / det.s[c];
+        if (!accept_hit(vertices, 9 * s, 9 * s + 3, 9 * s + 6, ray, INFINITY, &t, -1.0f,
+                        pax.s[c], pbx.s[c], pcx.s[c], pay.s[c], pby.s[c], pcy.s[c], az.s[c],
+                        bz.s[c], cz.s[c]))
+            continue;
+        keep_hit(prim_order, s, t, V.s[c] / det.s[c], W.s[c] / det.s[c], ray, 0, first, cap,
+                 out_t, out_u, out_v, out_prim, out_prim, found);
+    }
+    return fallback;
+}
+#endif
+
 /* The hits of the `n` rays of a stream (their Rays and slab constants made,
  * list[0, n) the rays that entered the root record x0's box): counted into
  * counts[k] (which hold each ray's hits so far), and with COUNT=0 kept in ray
@@ -149,6 +245,10 @@ inline void stream_hits(__global const float *records, __global const int *prim_
         __global const int *ref = words + 8 * WIDTH * x + 6 * WIDTH;
         /* a lane's y word (row 7) is negative for a leaf, 0 for a record */
         const uint leaf_lanes = lane_bits(((__global const intw *)ref)[1] < (intw)(0));
+#if LANE_TRIANGLES
+        floatw_lanes tri[9];   /* the leaf lanes' first triangles, for every ray of the list */
+        gather_lane_triangles(vertices, ref, leaf_lanes, tri);
+#endif
         const int mark = used;
         __global int *out = list + used;
         used += WIDTH * len;
@@ -173,10 +273,20 @@ inline void stream_hits(__global const float *records, __global const int *prim_
                 long first;
                 const int cap = kept_slots(offsets, k, &first);
                 int found = counts[k];
+                /* the lanes whose first triangle the vector test has not done */
+                uint scalar = leaves;
+#if LANE_TRIANGLES
+                if (!ray.hard)
+                    scalar = lane_triangle_hits(tri, ref, prim_order, vertices, &ray, leaves,
+                                                first, cap, out_t, out_u, out_v, out_prim,
+                                                &found);
+#endif
                 for (uint m = leaves; m != 0u; m &= m - 1u) {
                     const int c = lowest_lane(m);
-                    leaf_hits(prim_order, vertices, slot_faces, ref[c], -ref[WIDTH + c], &ray,
-                              0, first, cap, out_t, out_u, out_v, out_prim, out_prim, &found);
+                    const int done = (int)((~scalar >> c) & 1u);
+                    leaf_hits(prim_order, vertices, slot_faces, ref[c] + done,
+                              -ref[WIDTH + c] - done, &ray, 0, first, cap, out_t, out_u, out_v,
+                              out_prim, out_prim, &found);
                 }
                 counts[k] = found;
             }

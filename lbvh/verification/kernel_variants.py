@@ -160,6 +160,11 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
                 add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, **hit_pass,
                                            "SLAB_PAD": traverse.slab_pad(ctx),
                                            **all_hits.wide_defines(ctx, width)})
+        for width, hit_pass in itertools.product(wide.WIDTHS, hit_passes):
+            # the streams with their leaf lanes' triangles one by one (tests)
+            add(all_hits.KERNEL_FILE, {"STACK_SIZE": traverse.STACK_BUCKETS[0], **hit_pass,
+                                       "SLAB_PAD": traverse.slab_pad(ctx),
+                                       **all_hits.wide_defines(ctx, width), "LANE_TRIANGLES": 0})
         for stack in traverse.STACK_BUCKETS:   # segment_work: the counting pass's counters
             add(all_hits.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": 1, "COUNTERS": 1,
                                        "SLAB_PAD": traverse.slab_pad(ctx)})

@@ -372,16 +372,33 @@ def _per_ray(monkeypatch, query, *args, **kwargs):
 
 
 def _stream_cases():
+    """(name, build options, vertices, faces, origins, directions, tmin, tmax)."""
     v, f = dense_soup(1500, 5)
     o, d = random_rays(v, 600, 2)
-    yield "soup", v, f, o, d, 0.0, np.inf
+    yield "soup", {}, v, f, o, d, 0.0, np.inf
+    # leaves of several triangles: the first of each by the lanes' vector test, the
+    # rest one by one (hit_streams.h LANE_TRIANGLES)
+    yield "soup-collapsed", {"collapse": True}, v, f, o, d, 0.0, np.inf
+    # minor direction components of 1e-45 .. 1e-30: shears below float32's normal range
+    # (make_ray's `hard` rays, which the vector test leaves to hit_triangle's double)
+    rng = np.random.default_rng(7)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    o = (lo + rng.random((600, 3)) * (hi - lo)).astype(np.float32)
+    d = (rng.choice([1e-45, -1e-45, 3e-42, -1e-40, 1e-38, 1e-30, 0.0], (600, 3))
+         * rng.choice([1.0, 0.5], (600, 3)))
+    d[np.arange(600), rng.integers(0, 3, 600)] = rng.choice([1.0, -1.0, 1e7, -3e20], 600)
+    yield "soup-tiny-components", {}, v, f, o, d.astype(np.float32), 0.0, np.inf
     tv, tf = meshes.terrain(20000, 3)
     o, d = random_rays(tv, 3000, 4)
-    yield "terrain", tv, tf, o, d, 0.0, np.inf
+    yield "terrain", {}, tv, tf, o, d, 0.0, np.inf
+    # huge and tiny coordinates: triangles whose edge functions leave the vector test for
+    # the double fallback
     for name in ("closed_cube_vertices_edges", "rays_in_face_planes", "axis_rays_signed_zeros",
-                 "huge_coordinates", "tiny_coordinates", "zero_area_mix", "1_triangle"):
+                 "scaled_directions", "huge_coordinates", "tiny_coordinates", "zero_area_mix",
+                 "1_triangle"):
         case = hard_cases.make(name)
-        yield name, case.vertices, case.faces, case.origins, case.directions, case.tmin, case.tmax
+        yield (name, {}, case.vertices, case.faces, case.origins, case.directions, case.tmin,
+               case.tmax)
 
 
 # (per_chunk, items, scratch words a ray): the host's plan; chunks of 5 rays over 3
@@ -407,8 +424,8 @@ def test_streams_give_the_per_ray_walks_and_the_twins_hits(monkeypatch, plan):
     monkeypatch.setattr(ah, "stream_records",
                         lambda ctx, records: seen.append(real(ctx, records)) or seen[-1])
     cpu = lbvh.device.context.get_context().is_cpu
-    for name, v, f, o, d, lo, hi in _stream_cases():
-        bvh = lbvh.build(v, f)
+    for name, options, v, f, o, d, lo, hi in _stream_cases():
+        bvh = lbvh.build(v, f, **options)
         seen.clear()
         got = bvh.count_hits(o, d, lo, hi)
         # a CPU counts by streams, but in a tree of one leaf (no records)
@@ -419,6 +436,32 @@ def test_streams_give_the_per_ray_walks_and_the_twins_hits(monkeypatch, plan):
         same(bvh.all_hits(o, d, lo, hi), want)
         same(bvh.all_hits(o, d, lo, hi, max_hits=2),
              _per_ray(monkeypatch, bvh.all_hits, o, d, lo, hi, max_hits=2))
+
+
+def test_the_leaf_lanes_vector_test_gives_the_one_by_one_hits(monkeypatch):
+    """The streams test a ray's leaf lanes' first triangles in one vector computation
+    (hit_streams.h lane_triangle_hits): the counts and the hits, t, u and v bit for
+    bit, are those of the same streams testing every triangle one by one
+    (LANE_TRIANGLES=0), on every stream case, the collapsed tree's included."""
+    from lbvh.queries import all_hits as ah
+    if not lbvh.device.context.get_context().is_cpu:
+        pytest.skip("the streams walk a CPU's rays only")
+    real = ah.wide_defines
+    one_by_one = {"LANE_TRIANGLES": 0}
+    monkeypatch.setattr(ah, "stream_records", lambda ctx, records: records)
+    for name, options, v, f, o, d, lo, hi in _stream_cases():
+        bvh = lbvh.build(v, f, **options)
+        got = (bvh.count_hits(o, d, lo, hi), bvh.all_hits(o, d, lo, hi),
+               bvh.all_hits(o, d, lo, hi, max_hits=2))
+        with monkeypatch.context() as m:
+            m.setattr(ah, "wide_defines", lambda ctx, width: {**real(ctx, width), **one_by_one})
+            want = (bvh.count_hits(o, d, lo, hi), bvh.all_hits(o, d, lo, hi),
+                    bvh.all_hits(o, d, lo, hi, max_hits=2))
+        assert np.array_equal(got[0], want[0]), name
+        same(got[1], want[1])
+        same(got[2], want[2])
+        if name in ("soup", "terrain"):
+            assert got[0].sum() > len(o), name   # rays that cross several triangles
 
 
 def test_streams_with_few_frames_go_on_ray_by_ray(monkeypatch):
