@@ -371,12 +371,13 @@ class BVH:
         closed mesh, 0 outside); see :func:`lbvh.queries.winding.winding_numbers`."""
         return winding.winding_numbers(self, points, beta=beta)
 
-    def contains(self, points: Any, *, beta: float = winding.DEFAULT_BETA) -> np.ndarray:
+    def contains(self, points: Any, *, beta: float | None = None) -> np.ndarray:
         """``bool (N,)``: whether each point is inside the mesh (winding number > 1/2);
-        see :mod:`lbvh.queries.winding` for what it answers on an open mesh."""
+        see :mod:`lbvh.queries.winding` for what it answers on an open mesh, and
+        :func:`lbvh.queries.winding.contains` for ``beta``."""
         return winding.contains(self, points, beta=beta)
 
-    def signed_distance(self, points: Any, *, beta: float = winding.DEFAULT_BETA) -> np.ndarray:
+    def signed_distance(self, points: Any, *, beta: float | None = None) -> np.ndarray:
         """``float32 (N,)``: the distance to the mesh, negative inside (Open3D's and
         warp's convention); see :func:`lbvh.queries.winding.signed_distance`."""
         return winding.signed_distance(self, points, beta=beta)

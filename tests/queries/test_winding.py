@@ -149,6 +149,50 @@ def test_winding_numbers_within_the_bound_of_the_exact_sum(name):
     assert np.abs(other.winding_numbers(p) - exact).max() <= WINDING_BOUND
 
 
+@pytest.mark.parametrize("name", ["cube_sphere", "icosphere", "box", "teapot", "soup"])
+def test_the_sign_filters_walk_within_its_bound_of_the_exact_sum(name):
+    """contains and signed_distance first walk every point at SIGN_BETA: within
+    SIGN_FILTER_BOUND of the exact sum on the tests' meshes (the soup is open)."""
+    if name == "teapot":
+        v, f = shipped_mesh("teapot.obj")
+    elif name == "soup":
+        v, f = meshes.soup(3000, 4, 0.03, spread="normal")
+    else:
+        v, f = closed_meshes()[name]
+    bvh = lbvh.build(v, f)
+    p = box_points(v, 1500, 1)
+    exact = winding_numbers_numpy(v, f, p)
+    first = bvh.winding_numbers(p, beta=winding.SIGN_BETA)
+    assert np.abs(first - exact).max() <= winding.SIGN_FILTER_BOUND
+    # the filter's walk is the cheaper one: a default walk is at least as close
+    assert np.abs(bvh.winding_numbers(p) - exact).max() <= WINDING_BOUND
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_contains_by_the_filter_answers_as_the_default_beta(seed):
+    """contains and the sign of signed_distance take two passes (winding.inside): the
+    walk at SIGN_BETA for every point, then the default beta for those within
+    SIGN_FILTER_BOUND of 1/2. On an open terrain (w near 1/2 over wide regions) the
+    answers are the default walk's, point for point, including points where the first
+    walk alone would have answered otherwise; an explicit beta is one walk at it."""
+    v, f = meshes.terrain(20000, seed)
+    bvh = lbvh.build(v, f)
+    p = box_points(v, 60000, seed)
+    first = bvh.winding_numbers(p, beta=winding.SIGN_BETA)
+    default = bvh.winding_numbers(p)
+    band = np.abs(first - 0.5) <= winding.SIGN_FILTER_BOUND
+    assert 0 < band.sum() < len(p)
+    assert (band & ((first > 0.5) != (default > 0.5))).any()   # the second pass decides
+    inside = bvh.contains(p)
+    assert inside.dtype == np.bool_ and np.array_equal(inside, default > 0.5)
+    sd = bvh.signed_distance(p)
+    distance = bvh.closest_points(p).distance
+    assert np.array_equal(sd, np.where(default > 0.5, -distance, distance))
+    # an explicit beta: that walk alone
+    assert np.array_equal(bvh.contains(p, beta=winding.SIGN_BETA), first > 0.5)
+    assert np.array_equal(bvh.contains(p, beta=winding.DEFAULT_BETA), inside)
+
+
 @pytest.mark.parametrize("width", [4, 8])
 def test_the_wide_walk_answers_as_the_binary_walk(width):
     """Through wide records (either width) and through the binary nodes (records that
@@ -519,6 +563,19 @@ def test_sponza_point_where_small_nodes_add_up():
     for tree in (bvh, binary):
         assert abs(tree.winding_numbers(q)[0] - exact[0]) <= WINDING_BOUND
     assert abs(bvh.winding_numbers(q, beta=1.3)[0] - exact[0]) > WINDING_BOUND
+
+
+def test_sponza_sign_filter_answers_as_the_default_beta():
+    """On Sponza (open: 63,647 boundary edges), the filter's first walk against the walk
+    at beta = 4 over 2^18 points in its box grown by a fifth (as the bench's): within
+    SIGN_FILTER_BOUND, and contains gives the default walk's answers."""
+    v, f = shared_mesh("crytek_sponza.obj")
+    p = box_points(v, 1 << 18, 17)
+    bvh = lbvh.build(v, f)
+    close = bvh.winding_numbers(p, beta=4.0)
+    first = bvh.winding_numbers(p, beta=winding.SIGN_BETA)
+    assert np.abs(first - close).max() <= winding.SIGN_FILTER_BOUND
+    assert np.array_equal(bvh.contains(p), bvh.winding_numbers(p) > 0.5)
 
 
 @pytest.mark.parametrize("name", ["cube_sphere", "icosphere", "box"])
