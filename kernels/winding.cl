@@ -25,7 +25,9 @@
  *   [0..2] p, [3] R^2, [4..6] N, [7..15] M row by row (M[j][k] = m[7 + 3j + k]),
  *   with ORDER=2 also [16..18] g and [19..36] K (SECOND_ORDER_W); last
  *   ([ROWS - 1]) the far floor A R^3 / (4 pi e).
- * beta2 is beta^2.
+ * beta2 is beta^2; floor_scale multiplies the floor, NODE_ERROR over the
+ * pass's own error target per node (1 for the node error the moments were
+ * made for; less for a coarser pass, lbvh/queries/winding.py node_error).
  *
  * With WIDE=1 the walk goes through the tree's wide records (kernels/wide.cl)
  * instead: `moments` then holds, per record, the same ROWS values of each
@@ -230,7 +232,8 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
                               __global const float *vertices, __global const uint *slot_faces,
                               const int root, const int root_y, const int num_nodes,
                               __global const float *points, __global const int *order,
-                              const int count, const float beta2, const float scale,
+                              const int count, const float beta2, const float floor_scale,
+                              const float scale,
                               __global float *winding, __global int *flags) {
     const int k = get_global_id(0);
     if (k >= count) return;
@@ -257,7 +260,8 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
                              rz = DIFF(m[2], (floatw)(q.z));
                 const floatw r2 = rx * rx + ry * ry + rz * rz;
                 const floatw r1 = SQRTW(r2);
-                const intw far = (r2 > (floatw)(beta2) * m[3]) & (r2 * r2 * r1 >= m[FLOOR_ROW]);
+                const intw far = (r2 > (floatw)(beta2) * m[3]) &
+                                 (r2 * r2 * r1 >= (floatw)(floor_scale) * m[FLOOR_ROW]);
                 const intw y_row = ((__global const intw *)words)[8 * record + 7];
                 /* far (and not an empty lane): expanded; near: a leaf's first triangle
                  * summed from the corner rows, lane by lane, and the rest of it one by
@@ -312,7 +316,7 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
             const float r2 = dot(r, r);
             const int a = as_int(nodes[2 * node].w), b = as_int(nodes[2 * node + 1].w);
             const float r1 = sqrt1(r2);
-            if (r2 > beta2 * m[3] && r2 * r2 * r1 >= m[FLOOR_ROW]) {
+            if (r2 > beta2 * m[3] && r2 * r2 * r1 >= floor_scale * m[FLOOR_ROW]) {
                 /* far: the expansion (Barill et al. 2018) */
                 const float inv = 1.0f / r1;
                 const float inv3 = inv * inv * inv;

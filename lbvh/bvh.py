@@ -366,10 +366,11 @@ class BVH:
         return closest.closest_points(self, points, max_distance, batch_size=batch_size)
 
     # -- inside and signed distance (lbvh/queries/winding.py, kernels/winding.cl) ----
-    def winding_numbers(self, points: Any, *, beta: float = winding.DEFAULT_BETA) -> np.ndarray:
+    def winding_numbers(self, points: Any, *, beta: float = winding.DEFAULT_BETA,
+                        node_error: float = winding.NODE_ERROR) -> np.ndarray:
         """``float32 (N,)``: the generalised winding number of each point (1 inside a
         closed mesh, 0 outside); see :func:`lbvh.queries.winding.winding_numbers`."""
-        return winding.winding_numbers(self, points, beta=beta)
+        return winding.winding_numbers(self, points, beta=beta, node_error=node_error)
 
     def contains(self, points: Any, *, beta: float | None = None) -> np.ndarray:
         """``bool (N,)``: whether each point is inside the mesh (winding number > 1/2);

@@ -410,6 +410,8 @@ ROWS: list[Row] = [
         ValueError, "point 2 has a NaN"),
     Row("bvh.contains", "beta=0.5", lambda e: e.bvh.contains(e.o, beta=0.5), ValueError,
         "beta: 0.5"),
+    Row("bvh.winding_numbers", "node_error=0", lambda e: e.bvh.winding_numbers(e.o, node_error=0),
+        ValueError, "node_error: 0"),
     Row("bvh.winding_numbers", "points of shape (N, 2)", lambda e: e.bvh.winding_numbers(e.o[:, :2]),
         ValueError, "expected (N, 3)"),
     Row("bvh.signed_distance", "infinite point", lambda e: e.bvh.signed_distance(

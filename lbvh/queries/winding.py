@@ -46,11 +46,13 @@ the bunny, Sponza and a 1M-triangle terrain (bench/README.md). The twin is
 :func:`winding_numbers_numpy`, the exact float64 sum over every triangle.
 
 ``contains`` and the sign of ``signed_distance`` need only the side of 1/2: they
-walk every point at :data:`SIGN_BETA` (cheaper, within :data:`SIGN_FILTER_BOUND`)
+walk every point at :data:`SIGN_BETA` and :data:`SIGN_NODE_ERROR` (cheaper, within
+:data:`SIGN_FILTER_BOUND`)
 and again at the default ``beta`` only the points whose first ``w`` lies within that
 bound of 1/2 (:func:`inside`). Where both walks are within their bounds that is the
 default walk's answer for every point (tested, on an open terrain and Sponza), for
-1.16x the points per second on Sponza (bench/README.md).
+1.3x the points per second on Sponza and the bunny, 0.92x on a 1M-triangle terrain
+(open: 18% of its points within the bound of 1/2; bench/README.md).
 """
 from __future__ import annotations
 
@@ -63,11 +65,11 @@ from .. import device as dev
 from .closest import check_points, check_points_range, closest_points, walk_of
 from .ray_order import MIN_POINTS, gather_points, point_order
 from .target import QueryTarget
-from .winding_moments import DEFAULT_ORDER, ROWS_ORDER2, scale_of_box
+from .winding_moments import DEFAULT_ORDER, NODE_ERROR, ROWS_ORDER2, scale_of_box
 
 KERNEL_FILE = "winding.cl"
 
-__all__ = ["DEFAULT_BETA", "DEFAULT_ORDER", "expansion_numpy", "winding_numbers", "contains",
+__all__ = ["DEFAULT_BETA", "DEFAULT_ORDER", "NODE_ERROR", "expansion_numpy", "winding_numbers", "contains",
            "signed_distance", "winding_numbers_numpy"]
 
 #: The accuracy parameter of Barill et al. 2018: a node is expanded only where the point
@@ -76,13 +78,19 @@ __all__ = ["DEFAULT_BETA", "DEFAULT_ORDER", "expansion_numpy", "winding_numbers"
 DEFAULT_BETA = 1.35
 
 #: The first pass of :func:`inside` (``contains``, the sign of ``signed_distance``): a
-#: walk at this ``beta`` answers every point whose ``w`` lies farther than
-#: :data:`SIGN_FILTER_BOUND` from 1/2 (nearly all of them), the default ``beta`` the rest.
+#: walk at this ``beta`` and :data:`SIGN_NODE_ERROR` answers every point whose ``w``
+#: lies farther than :data:`SIGN_FILTER_BOUND` from 1/2 (nearly all of them), the
+#: default walk the rest.
 SIGN_BETA = 1.1
-#: The walk at :data:`SIGN_BETA` keeps ``|w - w_exact|`` within this. Measured as
-#: :data:`lbvh.verification.error_bound.WINDING_BOUND` is, over 1,048,576 points in the
-#: box grown by a fifth of each of the bench's scenes against the walk at ``beta = 4``:
-#: at most 0.041 on the bunny, 0.122 on Sponza and 0.065 on a 1M-triangle terrain.
+#: The first pass's error target per far node (four times the default's
+#: :data:`~lbvh.queries.winding_moments.NODE_ERROR`: Sponza's first pass 1.16x, the
+#: terrain's 1.3x, for a largest error of 0.136 instead of 0.122 on Sponza).
+SIGN_NODE_ERROR = 0.16
+#: The walk at :data:`SIGN_BETA` and :data:`SIGN_NODE_ERROR` keeps ``|w - w_exact|``
+#: within this. Measured as :data:`lbvh.verification.error_bound.WINDING_BOUND` is,
+#: over 1,048,576 points in the box grown by a fifth of each of the bench's scenes
+#: against the walk at ``beta = 4``: at most 0.075 on the bunny, 0.136 on Sponza and
+#: 0.094 on a 1M-triangle terrain (0.041, 0.122 and 0.065 at the default node error).
 SIGN_FILTER_BOUND = 0.25
 
 #: Bit of the per-point flag word: the stack was full and a subtree was skipped.
@@ -143,9 +151,20 @@ def _check_beta(beta: Any) -> np.float32:
     return np.float32(b * b)
 
 
+def _check_node_error(node_error: Any) -> np.float32:
+    """The kernel's ``floor_scale`` for a far node's error target ``node_error``."""
+    try:
+        e = float(node_error)
+    except (TypeError, ValueError):
+        raise ValueError(f"node_error: {node_error!r}; expected a positive number") from None
+    if not (e > 0 and np.isfinite(e)):
+        raise ValueError(f"node_error: {node_error!r}; expected a finite number > 0")
+    return np.float32(NODE_ERROR / e)
+
+
 @dev.serialised
 def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_BETA,
-                    batch_size: int = 1 << 20) -> np.ndarray:
+                    node_error: float = NODE_ERROR, batch_size: int = 1 << 20) -> np.ndarray:
     """The generalised winding number of each point (see the module docstring).
 
     Args:
@@ -153,13 +172,16 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
         points: ``(N, 3)`` real array (converted to float32).
         beta: accuracy (>= 1): nodes farther than ``beta`` times their radius are
             expanded instead of summed.
+        node_error: accuracy (> 0): a node is expanded only where the estimate of its
+            expansion's error, ``A / (4 pi r^2) (R / r)^3``, is at most this
+            (:data:`lbvh.queries.winding_moments.NODE_ERROR` unless told).
         batch_size: points per kernel launch.
 
     Returns:
         ``float32 (N,)``.
 
     Raises:
-        ValueError: a bad point (named), ``beta`` or ``batch_size``.
+        ValueError: a bad point (named), ``beta``, ``node_error`` or ``batch_size``.
         RuntimeError: the traversal stack overflowed (a tree deeper than 768 levels).
     """
     if target.tree.clipped_leaves:
@@ -168,6 +190,7 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
                          "for inside tests and signed distance")
     p, least, largest = check_points_range(points)
     beta2 = _check_beta(beta)
+    floor_scale = _check_node_error(node_error)
     if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
             or batch_size < 1:
         raise ValueError(f"batch_size: {batch_size!r}; expected a positive integer")
@@ -202,7 +225,7 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
                          target.mesh.vertices_buf, slot_faces, root, root_y, tree.num_nodes,
                          bufs["points"] if order is None else sorted_points,
                          order if order is not None else bufs["flags"], m, beta2,
-                         np.float32(scale), bufs["w"], bufs["flags"],
+                         floor_scale, np.float32(scale), bufs["w"], bufs["flags"],
                          defines={**defines, "POINT_ORDER": int(order is not None)},
                          wait_for=ups)
             cl.enqueue_copy(ctx.queue, out[start:stop], bufs["w"], wait_for=[ev], is_blocking=False)
@@ -224,14 +247,14 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
 def inside(target: QueryTarget, points: np.ndarray, beta: float | None = None) -> np.ndarray:
     """``bool (N,)``: ``winding > 0.5`` for checked ``points`` (``float32 (N, 3)``), by
     :func:`winding_numbers` at ``beta``; with ``beta`` None, the answers of the default
-    ``beta`` in two passes (a filter): every point at :data:`SIGN_BETA`, then at
-    :data:`DEFAULT_BETA` only the points whose first ``w`` lies within
-    :data:`SIGN_FILTER_BOUND` of 1/2. A point past that
+    walk in two passes (a filter): every point at :data:`SIGN_BETA` and
+    :data:`SIGN_NODE_ERROR`, then by the default walk only the points whose first ``w``
+    lies within :data:`SIGN_FILTER_BOUND` of 1/2. A point past that
     has the sign of its exact ``w``, and so of the default's, wherever both walks are
     within their bounds."""
     if beta is not None:
         return winding_numbers(target, points, beta=beta) > 0.5
-    w = winding_numbers(target, points, beta=SIGN_BETA)
+    w = winding_numbers(target, points, beta=SIGN_BETA, node_error=SIGN_NODE_ERROR)
     near = np.flatnonzero(np.abs(w - np.float32(0.5)) <= SIGN_FILTER_BOUND)
     if len(near):
         w[near] = winding_numbers(target, points[near], beta=DEFAULT_BETA)

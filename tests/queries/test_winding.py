@@ -151,8 +151,9 @@ def test_winding_numbers_within_the_bound_of_the_exact_sum(name):
 
 @pytest.mark.parametrize("name", ["cube_sphere", "icosphere", "box", "teapot", "soup"])
 def test_the_sign_filters_walk_within_its_bound_of_the_exact_sum(name):
-    """contains and signed_distance first walk every point at SIGN_BETA: within
-    SIGN_FILTER_BOUND of the exact sum on the tests' meshes (the soup is open)."""
+    """contains and signed_distance first walk every point at SIGN_BETA and
+    SIGN_NODE_ERROR: within SIGN_FILTER_BOUND of the exact sum on the tests' meshes
+    (the soup is open)."""
     if name == "teapot":
         v, f = shipped_mesh("teapot.obj")
     elif name == "soup":
@@ -162,7 +163,7 @@ def test_the_sign_filters_walk_within_its_bound_of_the_exact_sum(name):
     bvh = lbvh.build(v, f)
     p = box_points(v, 1500, 1)
     exact = winding_numbers_numpy(v, f, p)
-    first = bvh.winding_numbers(p, beta=winding.SIGN_BETA)
+    first = bvh.winding_numbers(p, beta=winding.SIGN_BETA, node_error=winding.SIGN_NODE_ERROR)
     assert np.abs(first - exact).max() <= winding.SIGN_FILTER_BOUND
     # the filter's walk is the cheaper one: a default walk is at least as close
     assert np.abs(bvh.winding_numbers(p) - exact).max() <= WINDING_BOUND
@@ -178,7 +179,7 @@ def test_contains_by_the_filter_answers_as_the_default_beta(seed):
     v, f = meshes.terrain(20000, seed)
     bvh = lbvh.build(v, f)
     p = box_points(v, 60000, seed)
-    first = bvh.winding_numbers(p, beta=winding.SIGN_BETA)
+    first = bvh.winding_numbers(p, beta=winding.SIGN_BETA, node_error=winding.SIGN_NODE_ERROR)
     default = bvh.winding_numbers(p)
     band = np.abs(first - 0.5) <= winding.SIGN_FILTER_BOUND
     assert 0 < band.sum() < len(p)
@@ -189,7 +190,8 @@ def test_contains_by_the_filter_answers_as_the_default_beta(seed):
     distance = bvh.closest_points(p).distance
     assert np.array_equal(sd, np.where(default > 0.5, -distance, distance))
     # an explicit beta: that walk alone
-    assert np.array_equal(bvh.contains(p, beta=winding.SIGN_BETA), first > 0.5)
+    assert np.array_equal(bvh.contains(p, beta=winding.SIGN_BETA),
+                          bvh.winding_numbers(p, beta=winding.SIGN_BETA) > 0.5)
     assert np.array_equal(bvh.contains(p, beta=winding.DEFAULT_BETA), inside)
 
 
@@ -391,6 +393,10 @@ def test_a_node_of_much_area_for_its_radius_is_opened():
     # without the floor (a node far on beta alone), the tube's root expansion alone
     root = node_moments(binary.nodes, binary.prim_order, binary.root, v, f)[binary.root]
     assert np.abs(expansion_numpy(root[None], p)[0] - exact).max() > WINDING_BOUND
+    # and the binary walk with a node error so large that the floor lets every node
+    # past: the floor is what kept it within 0.6 of the bound (0.026; without, 0.048)
+    loose = np.abs(binary.winding_numbers(p, node_error=1e30) - exact).max()
+    assert loose > 1.5 * np.abs(binary.winding_numbers(p) - exact).max()
     grid = [(3.0 * i, 0.0, 3.0 * j) for i in range(6) for j in range(6)]
     vv = np.concatenate([v + np.float32(g) for g in grid])
     ff = np.concatenate([f + len(v) * k for k in range(len(grid))]).astype(np.uint32)
@@ -573,7 +579,7 @@ def test_sponza_sign_filter_answers_as_the_default_beta():
     p = box_points(v, 1 << 18, 17)
     bvh = lbvh.build(v, f)
     close = bvh.winding_numbers(p, beta=4.0)
-    first = bvh.winding_numbers(p, beta=winding.SIGN_BETA)
+    first = bvh.winding_numbers(p, beta=winding.SIGN_BETA, node_error=winding.SIGN_NODE_ERROR)
     assert np.abs(first - close).max() <= winding.SIGN_FILTER_BOUND
     assert np.array_equal(bvh.contains(p), bvh.winding_numbers(p) > 0.5)
 
