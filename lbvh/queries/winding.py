@@ -47,12 +47,12 @@ the bunny, Sponza and a 1M-triangle terrain (bench/README.md). The twin is
 
 ``contains`` and the sign of ``signed_distance`` need only the side of 1/2: they
 walk every point at :data:`SIGN_BETA` and :data:`SIGN_NODE_ERROR` (cheaper, within
-:data:`SIGN_FILTER_BOUND`)
-and again at the default ``beta`` only the points whose first ``w`` lies within that
-bound of 1/2 (:func:`inside`). Where both walks are within their bounds that is the
-default walk's answer for every point (tested, on an open terrain and Sponza), for
-1.3x the points per second on Sponza and the bunny, 0.92x on a 1M-triangle terrain
-(open: 18% of its points within the bound of 1/2; bench/README.md).
+:data:`SIGN_FILTER_BOUND`), and again by the default walk only the points whose
+first ``w`` lies within that bound of 1/2 (:func:`inside`). Where both walks are
+within their bounds that is the default walk's answer for every point (tested, on an
+open terrain and Sponza), for 1.3x the points per second on Sponza and the bunny,
+0.92x on a 1M-triangle terrain (open: 18% of its points within the bound of 1/2;
+bench/README.md).
 """
 from __future__ import annotations
 
@@ -69,7 +69,8 @@ from .winding_moments import DEFAULT_ORDER, NODE_ERROR, ROWS_ORDER2, scale_of_bo
 
 KERNEL_FILE = "winding.cl"
 
-__all__ = ["DEFAULT_BETA", "DEFAULT_ORDER", "NODE_ERROR", "expansion_numpy", "winding_numbers", "contains",
+__all__ = ["DEFAULT_BETA", "DEFAULT_ORDER", "NODE_ERROR", "SIGN_BETA", "SIGN_NODE_ERROR",
+           "SIGN_FILTER_BOUND", "expansion_numpy", "winding_numbers", "inside", "contains",
            "signed_distance", "winding_numbers_numpy"]
 
 #: The accuracy parameter of Barill et al. 2018: a node is expanded only where the point
@@ -249,9 +250,8 @@ def inside(target: QueryTarget, points: np.ndarray, beta: float | None = None) -
     :func:`winding_numbers` at ``beta``; with ``beta`` None, the answers of the default
     walk in two passes (a filter): every point at :data:`SIGN_BETA` and
     :data:`SIGN_NODE_ERROR`, then by the default walk only the points whose first ``w``
-    lies within :data:`SIGN_FILTER_BOUND` of 1/2. A point past that
-    has the sign of its exact ``w``, and so of the default's, wherever both walks are
-    within their bounds."""
+    lies within :data:`SIGN_FILTER_BOUND` of 1/2. A point past that has the sign of its
+    exact ``w``, and so of the default's, wherever both walks are within their bounds."""
     if beta is not None:
         return winding_numbers(target, points, beta=beta) > 0.5
     w = winding_numbers(target, points, beta=SIGN_BETA, node_error=SIGN_NODE_ERROR)
