@@ -415,7 +415,6 @@ class Scene:
                                         points, max_distance, batch_size=batch_size)
 
     @dev.serialised
-    @dev.serialised
     def winding_numbers(self, points: Any) -> np.ndarray:
         """``float32 (N,)``: the generalised winding number of the scene, the sum of its
         instances', each within its mesh's bound (:data:`~lbvh.verification.error_bound.
