@@ -47,8 +47,10 @@
  * Defines:
  *   STACK_SIZE=n  entries of each level's stack; a push beyond n sets
  *                 FLAG_OVERFLOW and skips that subtree (the host raises it).
- *   POINT_ORDER=1 work-item k answers point order[k] (a permutation); the
- *                 answers stay in the points' own slots.
+ *   POINT_ORDER=1 work-item k answers point order[k] (a permutation), which
+ *                 `points` holds at k (ray_order.cl, gather_points: read as one
+ *                 run, as closest.cl reads them); the answers stay in the
+ *                 points' own slots.
  *   NO_FP64=1     float32 arithmetic even where the device has doubles (tests).
  */
 #include "common.h"
@@ -201,7 +203,7 @@ __kernel void instance_closest(__global const float4 *top_nodes, __global const 
     const int k = get_global_id(0);
     if (k >= count) return;
     const int i = point_index(order, k);
-    const real3 p = to_real3(load_float3(points, i));
+    const real3 p = to_real3(load_float3(points, k));
     Best best;
     best.best2 = (real)max_distance * (real)max_distance;
     best.v = 0; best.w = 0;

@@ -35,7 +35,7 @@ import pyopencl as cl
 from .. import device as dev
 from .closest import _max_distance, check_points
 from .instances import SceneBuffers
-from .ray_order import MIN_POINTS, point_order
+from .ray_order import MIN_POINTS, gather_points, point_order
 from .traverse import stack_bucket
 
 KERNEL_FILE = "instance_closest.cl"
@@ -128,19 +128,23 @@ def closest_scene_points(ctx: dev.Context, buffers: SceneBuffers, ids: np.ndarra
             "prim": mem.alloc(4 * batch), "instance": mem.alloc(4 * batch),
             "bary": mem.alloc(8 * batch), "flags": mem.alloc(4 * batch)}
     base = {"STACK_SIZE": stack_bucket(buffers.depth + 1), **(extra_defines or {})}
+    order = sorted_points = None
     try:
         for start in range(0, n, batch):
             stop = min(n, start + batch)
             m = stop - start
             ups = [cl.enqueue_copy(ctx.queue, bufs["points"], p[start:stop], is_blocking=False)]
-            order = None
-            if m >= MIN_POINTS:   # nearby points one after another, as closest.py
+            order = sorted_points = None
+            if m >= MIN_POINTS:   # nearby points one after another, read as one run, as closest.py
                 order, ups = point_order(ctx, bufs["points"], m, *top.root_box())
+                sorted_points, ev = gather_points(ctx, bufs["points"], order, m, wait_for=ups)
+                ups = [ev]
             launch = dev.Launch(m, 1, -(-m // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
             ev = dev.run(ctx, KERNEL_FILE, "instance_closest", launch, top.nodes, top.prim_order,
                          top.root, top.num_nodes, buffers.placements, buffers.inst_root,
                          *buffers.nodes, buffers.num_nodes, buffers.prim_order, buffers.vertices,
-                         buffers.slot_faces, bufs["points"],
+                         buffers.slot_faces,
+                         bufs["points"] if order is None else sorted_points,
                          order if order is not None else bufs["flags"], limit, m,
                          bufs["distance"], bufs["points_out"], bufs["prim"], bufs["instance"],
                          bufs["bary"], bufs["flags"],
@@ -151,9 +155,10 @@ def closest_scene_points(ctx: dev.Context, buffers: SceneBuffers, ids: np.ndarra
                 cl.enqueue_copy(ctx.queue, out[name][start:stop], bufs[buf], wait_for=[ev],
                                 is_blocking=False)
             ctx.queue.finish()
-            mem.free(order)
+            mem.free(order, sorted_points)
+            order = sorted_points = None
     finally:
-        mem.free(*bufs.values())
+        mem.free(*bufs.values(), order, sorted_points)
     _raise_on_overflow(out["flags"])
     inst = out["instance"]
     found = inst >= 0
