@@ -24,7 +24,7 @@ import pyopencl as cl
 
 from .. import device as dev
 from ..mesh import real_array
-from .ray_order import MIN_POINTS, gather_points, point_order
+from .ray_order import MIN_POINTS, ordered_points
 from .target import QueryTarget
 from .wide import lane_defines
 from .traverse import stack_bucket, stack_need
@@ -165,11 +165,11 @@ def closest_points(target: QueryTarget, points: Any, max_distance: float = np.in
             m = stop - start
             ups = [cl.enqueue_copy(ctx.queue, bufs["points"], p[start:stop], is_blocking=False)]
             order = sorted_points = None
-            if m >= MIN_POINTS:   # nearby points one after another: 1.8x on the bunny
-                order, ups = point_order(ctx, bufs["points"], m, *tree.root_box())
-                # ... and read as one run (bench/README.md)
-                sorted_points, ev = gather_points(ctx, bufs["points"], order, m, wait_for=ups)
-                ups = [ev]
+            if m >= MIN_POINTS:
+                # nearby points one after another (1.8x on the bunny), read as one run
+                # (bench/README.md)
+                order, sorted_points, ups = ordered_points(ctx, bufs["points"], m,
+                                                           *tree.root_box())
             launch = dev.Launch(m, 1, -(-m // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
             ev = dev.run(ctx, KERNEL_FILE, "closest_points", launch, tree.nodes, records[0],
                          tree.prim_order, target.mesh.vertices_buf, slot_faces, tree.root,

@@ -35,7 +35,7 @@ import pyopencl as cl
 from .. import device as dev
 from .closest import _max_distance, check_points
 from .instances import SceneBuffers
-from .ray_order import MIN_POINTS, gather_points, point_order
+from .ray_order import MIN_POINTS, ordered_points
 from .traverse import stack_bucket
 
 KERNEL_FILE = "instance_closest.cl"
@@ -136,9 +136,8 @@ def closest_scene_points(ctx: dev.Context, buffers: SceneBuffers, ids: np.ndarra
             ups = [cl.enqueue_copy(ctx.queue, bufs["points"], p[start:stop], is_blocking=False)]
             order = sorted_points = None
             if m >= MIN_POINTS:   # nearby points one after another, read as one run, as closest.py
-                order, ups = point_order(ctx, bufs["points"], m, *top.root_box())
-                sorted_points, ev = gather_points(ctx, bufs["points"], order, m, wait_for=ups)
-                ups = [ev]
+                order, sorted_points, ups = ordered_points(ctx, bufs["points"], m,
+                                                           *top.root_box())
             launch = dev.Launch(m, 1, -(-m // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
             ev = dev.run(ctx, KERNEL_FILE, "instance_closest", launch, top.nodes, top.prim_order,
                          top.root, top.num_nodes, buffers.placements, buffers.inst_root,

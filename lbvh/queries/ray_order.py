@@ -97,6 +97,20 @@ def gather_points(ctx: Context, points: cl.Buffer, order: cl.Buffer, count: int,
     return out, ev
 
 
+def ordered_points(ctx: Context, points: cl.Buffer, count: int, lower: np.ndarray,
+                   upper: np.ndarray) -> tuple[cl.Buffer, cl.Buffer, list[cl.Event]]:
+    """:func:`point_order` then :func:`gather_points`, what the point queries' kernels
+    take with ``POINT_ORDER=1``: ``(order, gathered points, events to wait for)``. The
+    caller gives both buffers back to ``ctx.memory``."""
+    order, ups = point_order(ctx, points, count, lower, upper)
+    try:
+        gathered, ev = gather_points(ctx, points, order, count, wait_for=ups)
+    except BaseException:
+        ctx.memory.free(order)
+        raise
+    return order, gathered, [ev]
+
+
 # -- numpy twin ---------------------------------------------------------------------
 
 def _cells(t: np.ndarray, bits: int = CELL_BITS) -> np.ndarray:

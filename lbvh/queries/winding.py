@@ -63,7 +63,7 @@ import pyopencl as cl
 
 from .. import device as dev
 from .closest import check_points, check_points_range, closest_points, walk_of
-from .ray_order import MIN_POINTS, gather_points, point_order
+from .ray_order import MIN_POINTS, ordered_points
 from .target import QueryTarget
 from .winding_moments import DEFAULT_ORDER, NODE_ERROR, ROWS_ORDER2, scale_of_box
 
@@ -218,9 +218,8 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
             ups = [cl.enqueue_copy(ctx.queue, bufs["points"], p[start:stop], is_blocking=False)]
             if m >= MIN_POINTS:
                 # nearby points one after another, read as one run (bench/README.md)
-                order, ups = point_order(ctx, bufs["points"], m, *tree.root_box())
-                sorted_points, ev = gather_points(ctx, bufs["points"], order, m, wait_for=ups)
-                ups = [ev]
+                order, sorted_points, ups = ordered_points(ctx, bufs["points"], m,
+                                                           *tree.root_box())
             launch = dev.Launch(m, 1, -(-m // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
             ev = dev.run(ctx, KERNEL_FILE, "winding_numbers", launch, records, moments,
                          target.mesh.vertices_buf, slot_faces, root, root_y, tree.num_nodes,

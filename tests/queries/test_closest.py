@@ -177,7 +177,7 @@ def test_points_in_morton_order_give_the_same_answers(monkeypatch):
     """Large batches are answered in the Morton order of the points' cells
     (kernels/ray_order.cl point_keys): every answer stays in its own slot."""
     import lbvh.queries.closest as closest_module
-    from lbvh.queries.ray_order import point_keys_numpy
+    from lbvh.queries.ray_order import point_keys_numpy, point_order
     v, f = shipped_mesh("teapot.obj")
     bvh = lbvh.build(v, f)
     p = around(v, 3000, 10)
@@ -191,7 +191,7 @@ def test_points_in_morton_order_give_the_same_answers(monkeypatch):
     lower, upper = bvh.tree.root_box()
     ctx = bvh.ctx
     buf = dev.to_device(ctx, p)
-    order, _ = closest_module.point_order(ctx, buf, len(p), lower, upper)
+    order, _ = point_order(ctx, buf, len(p), lower, upper)
     got = dev.from_device(ctx, order, np.int32, (len(p),))
     ctx.memory.free(order)
     want = np.argsort(point_keys_numpy(p, lower, upper), kind="stable")
