@@ -120,6 +120,7 @@ FILE_SCENES = {
 GENERATED_SCENES: dict[str, Callable[[], tuple[np.ndarray, np.ndarray]]] = {
     "soup-1m": lambda: meshes.soup(1_000_000, seed=0),
     "terrain-1m": lambda: meshes.terrain(1_002_528, seed=0),   # 2 * 708^2 triangles
+    "blob-1m": lambda: meshes.blob(1_000_000, seed=0),         # closed: 4 * 500^2 triangles
 }
 
 

@@ -34,6 +34,17 @@
 #ifndef COUNT
 #define COUNT 1
 #endif
+/* SIGNED=1 (counting only): each hit counts -1 where the ray enters a
+ * triangle's front and +1 where it leaves by it (hit_triangle's sign, negated),
+ * so a ray's count is the winding number of its origin for a closed surface
+ * (the Jordan-Brouwer degree: a crossing of a consistently oriented closed
+ * surface changes the winding number by the crossing's sign), 0 from outside */
+#ifndef SIGNED
+#define SIGNED 0
+#endif
+#if SIGNED && !COUNT
+#error "SIGNED counts the crossings: it keeps no hits"
+#endif
 /* SLOTS_ONLY=1 (collecting): a ray keeps its first hits while its slots last and
  * replaces none after; the host traces a ray with more hits than slots again */
 #ifndef SLOTS_ONLY
@@ -160,10 +171,11 @@ inline void sort_kept(long first, int n, __global float *out_t, __global float *
 }
 #endif
 
-/* Slot s's triangle's hit (t, u, v) of *ray counted in *found and, with COUNT=0,
- * kept (hit_slot): t along the direction *ray was made from (make_ray's scaling
- * undone), the triangle in prim_order's numbering and, with HIT_INSTANCE, `inst`. */
-inline void keep_hit(__global const int *prim_order, int s, float t, float u, float v,
+/* Slot s's triangle's hit (t, u, v) of *ray counted in *found (with SIGNED, by
+ * `sign`, hit_triangle's, as SIGNED says) and, with COUNT=0, kept (hit_slot): t
+ * along the direction *ray was made from (make_ray's scaling undone), the
+ * triangle in prim_order's numbering and, with HIT_INSTANCE, `inst`. */
+inline void keep_hit(__global const int *prim_order, int s, int sign, float t, float u, float v,
                      const Ray *ray, int inst, long first, int cap, __global float *out_t,
                      __global float *out_u, __global float *out_v, __global int *out_prim,
                      __global int *out_inst, int *found) {
@@ -183,7 +195,11 @@ inline void keep_hit(__global const int *prim_order, int s, float t, float u, fl
 #endif
     }
 #endif
+#if SIGNED
+    *found -= sign;
+#else
     ++*found;
+#endif
 }
 
 /* Every hit of *ray among the `count` triangles of slots [s0, s0 + count): *found
@@ -198,14 +214,15 @@ inline void leaf_hits(__global const int *prim_order, __global const float *vert
     for (int s = s0; s < s0 + count; ++s) {
         float t = INFINITY, u = 0.0f, v = 0.0f;
 #if SLOT_TRIANGLES
-        if (!hit_triangle(vertices, 9 * s, 9 * s + 3, 9 * s + 6, ray, -1.0f, &t, &u, &v))
-            continue;
+        const int sign = hit_triangle(vertices, 9 * s, 9 * s + 3, 9 * s + 6, ray, -1.0f, &t, &u,
+                                      &v);
 #else
-        if (!hit_triangle(vertices, 3 * (int)slot_faces[3 * s], 3 * (int)slot_faces[3 * s + 1],
-                          3 * (int)slot_faces[3 * s + 2], ray, -1.0f, &t, &u, &v))
-            continue;
+        const int sign = hit_triangle(vertices, 3 * (int)slot_faces[3 * s],
+                                      3 * (int)slot_faces[3 * s + 1],
+                                      3 * (int)slot_faces[3 * s + 2], ray, -1.0f, &t, &u, &v);
 #endif
-        keep_hit(prim_order, s, t, u, v, ray, inst, first, cap, out_t, out_u, out_v, out_prim,
+        if (sign == 0) continue;
+        keep_hit(prim_order, s, sign, t, u, v, ray, inst, first, cap, out_t, out_u, out_v, out_prim,
                  out_inst, found);
     }
 }

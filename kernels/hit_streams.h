@@ -195,7 +195,8 @@ lane_triangle_hits(const floatw_lanes *tri, __global const int *ref,
                         pax.s[c], pbx.s[c], pcx.s[c], pay.s[c], pby.s[c], pcy.s[c], az.s[c],
                         bz.s[c], cz.s[c]))
             continue;
-        keep_hit(prim_order, s, t, V.s[c] / det.s[c], W.s[c] / det.s[c], ray, 0, first, cap,
+        keep_hit(prim_order, s, det.s[c] > 0.0f ? 1 : -1, t, V.s[c] / det.s[c],
+                 W.s[c] / det.s[c], ray, 0, first, cap,
                  out_t, out_u, out_v, out_prim, out_prim, found);
     }
     return fallback;

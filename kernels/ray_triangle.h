@@ -378,7 +378,13 @@ inline int accept_hit_loading(__global const float *vertices, int i0, int i1, in
 }
 
 /* One triangle against the ray; on a hit with tmin <= t <= tmax and t < *best,
- * updates *best, *bu, *bv and returns 1. Zero-area triangles never hit. */
+ * updates *best, *bu, *bv and returns the sign of det: +1 where the ray enters
+ * the triangle's front (its corners counter-clockwise seen from the origin,
+ * n . d < 0), -1 where it leaves by it; 0 for a miss. Zero-area triangles
+ * never hit. For the watertight test, det has the sign that U, V and W share
+ * (U + V + W, the edge functions of the sheared corners, times ez^2 > 0), so a
+ * crossing of a closed surface is counted +1 or -1 consistently with its
+ * neighbours through a shared edge (every_hit.h SIGNED). */
 #if TRIANGLE_TEST == TEST_WATERTIGHT && defined(WATERTIGHT_FP64)
 /* The watertight test in double from the sheared float coordinates (see below). */
 inline int hit_triangle_fp64(__global const float *vertices, int i0, int i1, int i2,
@@ -398,7 +404,7 @@ inline int hit_triangle_fp64(__global const float *vertices, int i0, int i1, int
     *best = t;
     *bu = (float)(V / det);
     *bv = (float)(W / det);
-    return 1;
+    return det > 0.0 ? 1 : -1;
 }
 
 /* The watertight test of a `hard` ray (make_ray: a shear below float32's
@@ -434,7 +440,7 @@ inline int hit_triangle_hard(__global const float *vertices, int i0, int i1, int
     *best = t;
     *bu = (float)(V / det);
     *bv = (float)(W / det);
-    return 1;
+    return det > 0.0 ? 1 : -1;
 }
 #endif
 
@@ -501,7 +507,7 @@ inline int hit_triangle(__global const float *vertices, int i0, int i1, int i2, 
     *best = t;
     *bu = V / det;
     *bv = W / det;
-    return 1;
+    return det > 0.0f ? 1 : -1;
 }
 #else
 /* Moller, Trumbore 1997, "Fast, Minimum Storage Ray/Triangle Intersection". */
@@ -529,7 +535,7 @@ inline int hit_triangle(__global const float *vertices, int i0, int i1, int i2, 
     *best = t;
     *bu = u;
     *bv = v;
-    return 1;
+    return det > 0.0f ? 1 : -1;
 }
 #endif
 

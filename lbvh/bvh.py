@@ -340,12 +340,13 @@ class BVH:
 
     # -- every hit (lbvh/queries/all_hits.py, kernels/all_hits.cl) ---------------
     def count_hits(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
-                   batch_size: int = hits_along.DEFAULT_BATCH,
+                   signed: bool = False, batch_size: int = hits_along.DEFAULT_BATCH,
                    invalid_rays: InvalidRays = "raise") -> np.ndarray:
         """``int32 (N,)``: how many times each ray crosses the mesh in ``[tmin, tmax]``, a
-        crossing through a shared edge or vertex once; see
+        crossing through a shared edge or vertex once (``signed``: +1 leaving a
+        triangle by its front, -1 entering by it); see
         :func:`lbvh.queries.all_hits.count_hits`."""
-        return hits_along.count_hits(self, origins, directions, tmin, tmax,
+        return hits_along.count_hits(self, origins, directions, tmin, tmax, signed=signed,
                                      batch_size=batch_size, invalid_rays=invalid_rays)
 
     def all_hits(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,

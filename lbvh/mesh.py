@@ -141,3 +141,35 @@ def _missing_faces(value: Any) -> str:
                 "triangles (pass a triangle mesh, or vertices and faces)")
     return (f"faces: missing: got a {kind} alone; pass vertices and faces, a trimesh.Trimesh, "
             "or the path of a mesh file")
+
+
+def is_closed(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether checked ``vertices`` (``float32 (V, 3)``) and ``faces`` (``(F, 3)``)
+    form a closed surface: every edge, between corners of equal coordinates, is
+    used as often in one direction as in the other (the faces' boundary, as a
+    chain of directed edges, is zero; a zero-length edge cancels itself). Then
+    the winding number off the surface is an integer everywhere, the signed
+    count of the crossings of any ray from the point (kernels/every_hit.h
+    ``SIGNED``). A hole, a flipped face, a face of three collinear corners or an
+    edge shared by three faces makes a surface not closed; corners repeated at
+    the same coordinates (a seam of split vertices) do not."""
+    f = np.asarray(faces, np.int64)
+    if _edges_cancel(f, len(vertices)):
+        return True
+    # one index per position; + 0 makes -0.0 +0.0, the same value for the kernels
+    v = np.asarray(vertices, np.float32) + np.float32(0.0)
+    order = np.lexsort((v[:, 2], v[:, 1], v[:, 0]))
+    sv = v[order]
+    new = np.ones(len(v), bool)
+    new[1:] = (sv[1:] != sv[:-1]).any(axis=1)
+    position = np.empty(len(v), np.int64)
+    position[order] = np.cumsum(new) - 1
+    return _edges_cancel(position[f], int(new.sum()))
+
+
+def _edges_cancel(faces: np.ndarray, count: int) -> bool:
+    """Whether the directed edges of ``faces`` (indices below ``count``) are, as a
+    multiset, the same as the reversed ones."""
+    a = faces.ravel()
+    b = faces[:, [1, 2, 0]].ravel()
+    return bool(np.array_equal(np.sort(a * count + b), np.sort(b * count + a)))

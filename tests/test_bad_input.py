@@ -371,6 +371,11 @@ ROWS: list[Row] = [
         ValueError, "batch_size: 0"),
     Row("bvh.count_hits", "no rays", lambda e: e.bvh.count_hits(np.zeros((0, 3)), np.zeros((0, 3))),
         None),
+    Row("bvh.count_hits", "signed=\"yes\"", lambda e: e.bvh.count_hits(e.o, e.d, signed="yes"),
+        ValueError, "signed: 'yes'"),
+    Row("bvh.count_hits", "signed on an sbvh tree", lambda e: _b(
+        e, e.v, e.f, builder="sbvh").count_hits(e.o, e.d, signed=True), ValueError,
+        "spatial splits"),
     Row("bvh.all_hits", "tmin > tmax", lambda e: e.bvh.all_hits(e.o, e.d, tmin=1.0, tmax=0.5),
         ValueError, "ray 0 has tmin 1.0 > tmax 0.5"),
     Row("bvh.all_hits", "negative max_hits", lambda e: e.bvh.all_hits(e.o, e.d, max_hits=-1),

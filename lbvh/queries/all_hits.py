@@ -141,7 +141,7 @@ def _rays(origins: Any, directions: Any, tmin: Any, tmax: Any, invalid_rays: str
 
 @dev.serialised
 def count_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
-               tmax: Any = np.inf, *, batch_size: int = DEFAULT_BATCH,
+               tmax: Any = np.inf, *, signed: bool = False, batch_size: int = DEFAULT_BATCH,
                invalid_rays: InvalidRays = "raise") -> np.ndarray:
     """How many times each ray crosses the mesh in ``[tmin, tmax]``.
 
@@ -150,22 +150,34 @@ def count_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0
         origins, directions, tmin, tmax, invalid_rays: as for
             :func:`lbvh.queries.traverse.intersect`; an invalid ray with
             ``invalid_rays="miss"`` counts 0.
+        signed: count each crossing +1 where the ray leaves a triangle by its front
+            (``n . d > 0``, ``n = (b - a) x (c - a)``) and -1 where it enters by it:
+            from ``tmin = 0`` to ``tmax = inf``, the winding number of the origin
+            for a closed mesh (each edge, by its corners' coordinates, used as often
+            one way as the other: :func:`lbvh.mesh.is_closed`); kernels/every_hit.h
+            ``SIGNED``.
         batch_size: rays per kernel launch.
 
     Returns:
         ``int32 (N,)``.
 
     Raises:
-        ValueError: a bad ray (named) or option.
+        ValueError: a bad ray (named) or option; ``signed`` on a tree with spatial
+            splits (``builder="sbvh"``).
         RuntimeError: the traversal stack overflowed (a tree deeper than 768 levels).
     """
     batch = _check_batch(batch_size)
+    if not isinstance(signed, (bool, np.bool_)):
+        raise ValueError(f"signed: {signed!r}; expected True or False")
     rays = _rays(origins, directions, tmin, tmax, invalid_rays)
     if target.tree.clipped_leaves:   # a triangle in several leaves: count it once
+        if signed:
+            raise ValueError("count_hits(signed=True): this tree has spatial splits "
+                             "(builder='sbvh'); build another tree for signed counts")
         hits = _collect(target, rays, batch, None)
         raise_on_overflow(hits.overflow.astype(np.int32), "count_hits")
         return hits.total.astype(np.int32)
-    counts, flags = _run(target, rays, batch, None)[:2]
+    counts, flags = _run(target, rays, batch, None, signed=bool(signed))[:2]
     raise_on_overflow(flags, "count_hits")
     return counts.astype(np.int32)
 
@@ -264,19 +276,21 @@ def raise_on_overflow(flags: np.ndarray, name: str) -> None:
 
 
 def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None,
-         work: np.ndarray | None = None):
-    """:func:`run_passes` of kernels/all_hits.cl over the target's tree."""
+         work: np.ndarray | None = None, signed: bool = False):
+    """:func:`run_passes` of kernels/all_hits.cl over the target's tree (``signed``:
+    counting, kernels/every_hit.h ``SIGNED``)."""
     tree = target.tree
     wide = target.wide_records()
+    sign = {"SIGNED": 1} if signed else {}
     if wide.packed and work is None:   # the counters count binary nodes (segment_work)
         return run_passes(target.ctx, KERNEL_FILE, "all_hits", wide_head(target),
                           stack_need(target), rays, batch, cap,
-                          defines=wide_defines(target.ctx, wide.width),
+                          defines={**wide_defines(target.ctx, wide.width), **sign},
                           streams=stream_records(target.ctx, wide.count))
     head = (tree.nodes, tree.nodes, tree.prim_order, target.mesh.vertices_buf,
             target.slot_faces(), tree.root, tree.root, 0, tree.num_nodes)
     return run_passes(target.ctx, KERNEL_FILE, "all_hits", head, target.traversal_depth(), rays,
-                      batch, cap, work=work)
+                      batch, cap, work=work, defines=sign)
 
 
 def wide_defines(ctx: dev.Context, width: int) -> dict[str, int]:

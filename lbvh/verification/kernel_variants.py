@@ -147,10 +147,11 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
         for width in wide.WIDTHS:   # through wide records of either width
             add(overlap.KERNEL_FILE, {"STACK_SIZE": stack, "COUNT": count, "WIDE": 1,
                                       "WIDTH": width, **wide.lane_defines(ctx)})
-    # all_hits.cl: both passes (the count with and without counters; the collecting pass
-    # with and without SLOTS_ONLY), one stack size per bucket, the slab padding of the
-    # device, through binary nodes and the device's wide records
-    hit_passes = ({"COUNT": 1}, {"COUNT": 0}, {"COUNT": 0, "SLOTS_ONLY": 1})
+    # all_hits.cl: both passes (the count with and without counters, and signed; the
+    # collecting pass with and without SLOTS_ONLY), one stack size per bucket, the slab
+    # padding of the device, through binary nodes and the device's wide records
+    hit_passes = ({"COUNT": 1}, {"COUNT": 1, "SIGNED": 1}, {"COUNT": 0},
+                  {"COUNT": 0, "SLOTS_ONLY": 1})
     add(all_hits.KERNEL_FILE, {})   # move_runs (no defines)
     for ctx in ctxs:
         for stack, hit_pass in itertools.product(traverse.STACK_BUCKETS, hit_passes):
@@ -172,6 +173,8 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     # size per bucket, the slab padding of the device
     for ctx in ctxs:
         for stack, hit_pass in itertools.product(traverse.STACK_BUCKETS, hit_passes):
+            if hit_pass.get("SIGNED"):   # a scene's counts are never signed
+                continue
             add(instance_hits.KERNEL_FILE, {"STACK_SIZE": stack, **hit_pass,
                                             "SLAB_PAD": traverse.slab_pad(ctx)})
     # instances.cl: closest and any hit, counters, both triangle tests, one stack per bucket

@@ -188,6 +188,23 @@ def sphere(n_tris: int, radius: float = 1.0) -> Mesh:
     return as_mesh(vertices, np.concatenate([top, bands, bottom]))
 
 
+def blob(n_tris: int, seed: int = 0) -> Mesh:
+    """:func:`sphere` with relief: each vertex moved along its radius by a few random
+    spherical waves (radius 1 +- about 0.25), so a closed surface with shared
+    vertices, bumps and folds of every size, the kind of mesh an inside test or a
+    signed distance is asked of most."""
+    v, f = sphere(n_tris)
+    p = v.astype(np.float64)
+    rng = np.random.default_rng(seed)
+    r = np.ones(len(p))
+    for _ in range(6):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        r += rng.uniform(0.02, 0.06) * np.sin(rng.uniform(2.0, 9.0) * (p @ axis)
+                                               + rng.uniform(0.0, 2 * np.pi))
+    return as_mesh(p * r[:, None], f)
+
+
 def cube_mesh(n: int = 4, half: float = 2.0) -> Mesh:
     """A closed cube ``[-half, half]^3``, each face an ``n x n`` grid: welded vertices,
     every edge shared by exactly two triangles, outward winding; exact coordinates

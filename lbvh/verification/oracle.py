@@ -163,12 +163,14 @@ def _inside(U, V, W, ax, ay, bx, by, cx, cy, edge_rule: bool) -> np.ndarray:
 
 
 def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: np.ndarray,
-               skip: np.ndarray, dtype, edge_rule: bool = False
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               skip: np.ndarray, dtype, edge_rule: bool = False, signs: bool = False
+               ) -> tuple[np.ndarray, ...]:
     """Woop 2013 for the pairs (``ray[k]``, ``tri[k]``): ``t, u, v`` per pair, ``t = inf`` on a miss.
 
     tmin/tmax are not applied here. Operation order follows kernels/ray_triangle.h;
-    ``edge_rule``: its EDGE_RULE (a ray through a shared edge or vertex hits one triangle).
+    ``edge_rule``: its EDGE_RULE (a ray through a shared edge or vertex hits one triangle);
+    ``signs``: the sign of each pair's det as well (hit_triangle's return: +1 where the
+    ray enters the front), from the arithmetic the test took.
     """
     axes = rays.axes[ray]
     o = rays.o_perm[ray]
@@ -195,6 +197,7 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
         t = T / det
         bu = V / det
         bv = W / det
+        sign = np.sign(det)
         if dtype == np.float32:
             # The kernel redoes the test in double when an edge function rounds
             # to zero or a product leaves float32's normal range; only t, u, v go back.
@@ -217,6 +220,7 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
                 t[redo] = (Td / detd).astype(np.float32)
                 bu[redo] = (Vd / detd).astype(np.float32)
                 bv[redo] = (Wd / detd).astype(np.float32)
+                sign[redo] = np.sign(detd)
             hard = rays.hard[ray]
             if hard.any():
                 # hit_triangle_hard: the whole test in double, d as it is (e = 0)
@@ -238,10 +242,13 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
                 t[h] = ((Uh * zs[0] + Vh * zs[1] + Wh * zs[2]) / (deth * ezd)).astype(np.float32)
                 bu[h] = (Vh / deth).astype(np.float32)
                 bv[h] = (Wh / deth).astype(np.float32)
+                sign[h] = np.sign(deth)
             inside &= _own_box(v, f, rays, ray, tri, t)
             # t was measured along d * 2^-texp
             t = np.ldexp(t, -rays.texp[ray]).astype(np.float32)
     inside &= ~skip[tri]
+    if signs:
+        return np.where(inside, t, np.inf), bu, bv, sign
     return np.where(inside, t, np.inf), bu, bv
 
 
@@ -346,9 +353,10 @@ def _candidate_pairs(rays: _Rays, num_tris: int, blocks, max_pairs: int):
 
 
 def _every_hit(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: Any, tmax: Any,
-               dtype, cull: bool, max_pairs: int, edge_rule: bool
+               dtype, cull: bool, max_pairs: int, edge_rule: bool, signs: bool = False
                ) -> tuple[_Rays, list[tuple[np.ndarray, ...]]]:
-    """Every (ray, triangle, t, u, v) hit in ``[tmin, tmax]``, in chunks."""
+    """Every (ray, triangle, t, u, v) hit in ``[tmin, tmax]``, in chunks (``signs``: and
+    the sign of its det, :func:`_pair_hits`)."""
     dtype = np.dtype(dtype).type
     if dtype not in (np.float32, np.float64):
         raise ValueError(f"dtype: {dtype}; expected float32 or float64")
@@ -362,9 +370,9 @@ def _every_hit(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: A
         blocks = _blocks(v, f, BLOCK_PADDING * scale)
     found = []
     for ray, tri in _candidate_pairs(rays, len(f), blocks, max_pairs):
-        t, bu, bv = _pair_hits(v, f, rays, ray, tri, skip, dtype, edge_rule)
+        t, bu, bv, *sign = _pair_hits(v, f, rays, ray, tri, skip, dtype, edge_rule, signs)
         ok = (t >= rays.tmin[ray]) & (t <= rays.tmax[ray]) & (t < np.inf)
-        found.append((ray[ok], tri[ok], t[ok], bu[ok], bv[ok]))
+        found.append((ray[ok], tri[ok], t[ok], bu[ok], bv[ok], *(x[ok] for x in sign)))
     return rays, found
 
 
@@ -449,3 +457,22 @@ def all_hits_brute(vertices: Any, faces: Any, origins: Any, directions: Any, tmi
     return AllHits(offsets, t[order], tri[order].astype(np.int32),
                    bu[order].astype(np.float32), bv[order].astype(np.float32), total,
                    np.zeros(n, bool), 0, np.zeros(n, bool))
+
+
+
+def signed_counts_brute(vertices: Any, faces: Any, origins: Any, directions: Any,
+                        tmin: Any = 0.0, tmax: Any = np.inf, *, dtype=np.float32,
+                        cull: bool = True, max_pairs: int = 1 << 18) -> np.ndarray:
+    """The twin of ``count_hits(..., signed=True)``: every hit of :func:`all_hits_brute`
+    (``dtype``) counted -1 where its det is positive (the ray enters the triangle's
+    front, ``n . d < 0``, ``n = (b - a) x (c - a)``) and +1 where it is negative, det
+    as the test computed it (float32: from the corners moved to the ray's origin and
+    rounded, as the kernel's; a sliver's can differ in sign from the exact ``n . d``,
+    consistently for the triangles of a closed surface): ``int64 (N,)``."""
+    rays, found = _every_hit(vertices, faces, origins, directions, tmin, tmax, dtype, cull,
+                             max_pairs, edge_rule=True, signs=True)
+    if not found:
+        return np.zeros(rays.count, np.int64)
+    ray = np.concatenate([c[0] for c in found])
+    sign = np.concatenate([c[5] for c in found])
+    return np.bincount(ray, weights=-sign, minlength=rays.count).astype(np.int64)

@@ -9,8 +9,9 @@ import pytest
 
 import lbvh
 from lbvh.verification import hard_cases, meshes
-from lbvh.verification.oracle import all_hits_brute
+from lbvh.verification.oracle import all_hits_brute, signed_counts_brute
 from lbvh.queries.all_hits import FIRST_SLOTS
+from lbvh.queries.winding import winding_numbers_numpy
 
 
 def dense_soup(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -48,6 +49,7 @@ def test_every_tree_gives_the_twins_hits(kind):
     same(got, all_hits_brute(v, f, o, d, dtype=np.float32))
     assert got.counts.max() >= 3 and (got.counts == 0).any()   # deep rays and misses
     assert np.array_equal(bvh.count_hits(o, d), got.total)
+    assert np.array_equal(bvh.count_hits(o, d, signed=True), signed_counts_brute(v, f, o, d))
     # the float64 oracle finds the same triangles (no ray of these passes within
     # rounding of an edge)
     exact = all_hits_brute(v, f, o, d, dtype=np.float64)
@@ -72,6 +74,8 @@ def test_hard_cases_match_the_twin(name):
     got = bvh.all_hits(o, d, lo, hi)
     same(got, all_hits_brute(case.vertices, case.faces, o, d, lo, hi, dtype=np.float32))
     assert np.array_equal(bvh.count_hits(o, d, lo, hi), got.total)
+    assert np.array_equal(bvh.count_hits(o, d, lo, hi, signed=True),
+                          signed_counts_brute(case.vertices, case.faces, o, d, lo, hi))
     if len(case.faces) <= 2:
         assert bvh.wide_records().packed
         assert 0 < (got.total > 0).sum() < len(got.total)
@@ -110,6 +114,97 @@ def test_a_crossing_at_a_grid_vertex_or_edge_counts_once():
         counts = bvh.count_hits(o, d)
         assert (counts[inside] == 1).all(), (tilt, np.bincount(counts[inside]))
         same(bvh.all_hits(o, d), all_hits_brute(v, f, o, d, dtype=np.float32))
+
+
+def test_signed_counts_are_the_winding_numbers_of_closed_meshes():
+    """From a point to infinity, count_hits(signed=True) is the point's winding number
+    on a closed surface, whatever the direction: rays aimed exactly at the vertices and
+    edges of the closed hard cases (from outside and from the centre), and rays in
+    random directions and aimed at vertices from points around a cube_sphere with a
+    smaller copy inside it (2 there), turned inside out (-1 inside), and with its
+    vertices split at every face (closed by coordinates only)."""
+    for name in ("closed_cube_vertices_edges", "closed_sphere_vertices_edges"):
+        case = hard_cases.make(name)
+        bvh = lbvh.build(case.vertices, case.faces)
+        o, d = case.origins, case.directions
+        exact = np.round(winding_numbers_numpy(case.vertices, case.faces, o))
+        assert set(np.unique(exact)) == {0.0, 1.0}, name
+        assert np.array_equal(bvh.count_hits(o, d, signed=True), exact), name
+    v, f = meshes.cube_sphere(10)
+    nested = (np.concatenate([v, v * np.float32(0.5)]), np.concatenate([f, f + len(v)]))
+    split = (v[f].reshape(-1, 3), np.arange(3 * len(f), dtype=np.uint32).reshape(-1, 3))
+    rng = np.random.default_rng(8)
+    for mesh, values in ((nested, {0, 1, 2}), ((v, f[:, ::-1].copy()), {0, -1}),
+                         (split, {0, 1})):
+        bvh = lbvh.build(*mesh)
+        points = rng.uniform(-1.5, 1.5, (2000, 3)).astype(np.float32)
+        r = np.linalg.norm(points.astype(np.float64), axis=1)
+        points = points[(np.abs(r - 1) > 0.05) & (np.abs(r - 0.5) > 0.05)]
+        exact = np.round(winding_numbers_numpy(*mesh, points))
+        assert set(np.unique(exact)) == values
+        aimed = mesh[0][rng.integers(0, len(mesh[0]), len(points))] - points
+        for d in (rng.normal(size=points.shape), aimed):
+            assert np.array_equal(bvh.count_hits(points, d.astype(np.float32), signed=True),
+                                  exact)
+
+
+def _closed_twin(v: np.ndarray, f: np.ndarray) -> bool:
+    """lbvh.mesh.is_closed one edge at a time in plain Python: the count of each
+    directed edge between positions (coordinates, -0.0 as 0.0) equals its reverse's."""
+    count: dict[tuple, int] = {}
+    for tri in f:
+        corners = [tuple(float(x) + 0.0 for x in v[i]) for i in tri]
+        for a, b in zip(corners, corners[1:] + corners[:1]):
+            count[(a, b)] = count.get((a, b), 0) + 1
+    return all(count.get((b, a), 0) == k for (a, b), k in count.items())
+
+
+def _closed_cases() -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    v, f = meshes.cube_sphere(4)
+    split = (v[f].reshape(-1, 3), np.arange(3 * len(f), dtype=np.uint32).reshape(-1, 3))
+    signed_zero = meshes.cube_mesh(2, half=1.0)   # a vertex at 0.0 on every axis
+    sz_v = signed_zero[0][signed_zero[1]].reshape(-1, 3)
+    zero = sz_v == 0
+    sz_v[zero] = np.where(np.arange(zero.sum()) % 2 == 1, np.float32(-0.0), np.float32(0.0))
+    assert np.signbit(sz_v[zero]).any() and not np.signbit(sz_v[zero]).all()
+    collinear = (np.concatenate([v, [[0, 0, 2], [0, 0, 3], [0, 0, 4]]]).astype(np.float32),
+                 np.concatenate([f, [[len(v), len(v) + 1, len(v) + 2]]]).astype(np.uint32))
+    two = (np.concatenate([v, v + np.float32(2.0)]), np.concatenate([f, f + len(v)]))
+    # three faces on one edge: two tetrahedra sharing edge (0, 1), both closed
+    tets = (np.float32([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, -1, 0], [0, 0, -1]]),
+            np.uint32([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3],
+                       [0, 1, 4], [0, 5, 1], [0, 4, 5], [1, 5, 4]]))
+    return {"cube_sphere": (v, f), "blob": meshes.blob(2000, seed=1), "split_vertices": split,
+            "signed_zero_seams": (sz_v, np.arange(len(sz_v), dtype=np.uint32).reshape(-1, 3)),
+            "two_shells": two, "tetrahedra_on_one_edge": tets,
+            "a_face_missing": (v, f[1:]),
+            "a_face_flipped": (v, np.concatenate([f[:1, ::-1], f[1:]])),
+            "a_collinear_face": collinear, "a_face_twice": (v, np.concatenate([f, f[:1]]))}
+
+
+@pytest.mark.parametrize("name", list(_closed_cases()))
+def test_is_closed_is_its_twins(name):
+    """lbvh.mesh.is_closed (sorted edge keys, positions merged by coordinates) against
+    the edge-by-edge count, on closed meshes (split vertices, seams of -0.0 against
+    0.0, separate shells, three faces on one edge) and on ones that are not. Where it
+    says closed, the signed count of a ray from a point, in any direction and aimed at
+    the corners, is the point's winding number (the exact sum, rounded)."""
+    from lbvh.mesh import is_closed
+    v, f = _closed_cases()[name]
+    want = _closed_twin(v, f)
+    assert want == (not name.startswith("a_"))
+    assert is_closed(v, f) == want
+    if want:
+        rng = np.random.default_rng(9)
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        p = (lo + (hi - lo) * rng.uniform(-0.3, 1.3, (1500, 3))).astype(np.float32)
+        exact = winding_numbers_numpy(v, f, p)
+        clear = np.abs(exact - np.round(exact)) < 1e-6   # off the surface
+        p, exact = p[clear], np.round(exact[clear])
+        assert len(p) > 1000 and len(np.unique(exact)) >= 2
+        bvh = lbvh.build(v, f)
+        for d in (rng.normal(size=p.shape), v[rng.integers(0, len(v), len(p))] - p):
+            assert np.array_equal(bvh.count_hits(p, d.astype(np.float32), signed=True), exact)
 
 
 def test_parity_tells_inside_from_outside_on_a_closed_mesh():
@@ -433,6 +528,10 @@ def test_streams_give_the_per_ray_walks_and_the_twins_hits(monkeypatch, plan):
         want = all_hits_brute(v, f, o, d, lo, hi, dtype=np.float32)
         assert np.array_equal(got, want.total), name
         assert np.array_equal(got, _per_ray(monkeypatch, bvh.count_hits, o, d, lo, hi)), name
+        signed = bvh.count_hits(o, d, lo, hi, signed=True)
+        assert np.array_equal(signed, signed_counts_brute(v, f, o, d, lo, hi)), name
+        assert np.array_equal(signed, _per_ray(monkeypatch, bvh.count_hits, o, d, lo, hi,
+                                               signed=True)), name
         same(bvh.all_hits(o, d, lo, hi), want)
         same(bvh.all_hits(o, d, lo, hi, max_hits=2),
              _per_ray(monkeypatch, bvh.all_hits, o, d, lo, hi, max_hits=2))
@@ -452,12 +551,14 @@ def test_the_leaf_lanes_vector_test_gives_the_one_by_one_hits(monkeypatch):
     for name, options, v, f, o, d, lo, hi in _stream_cases():
         bvh = lbvh.build(v, f, **options)
         got = (bvh.count_hits(o, d, lo, hi), bvh.all_hits(o, d, lo, hi),
-               bvh.all_hits(o, d, lo, hi, max_hits=2))
+               bvh.all_hits(o, d, lo, hi, max_hits=2), bvh.count_hits(o, d, lo, hi, signed=True))
         with monkeypatch.context() as m:
             m.setattr(ah, "wide_defines", lambda ctx, width: {**real(ctx, width), **one_by_one})
             want = (bvh.count_hits(o, d, lo, hi), bvh.all_hits(o, d, lo, hi),
-                    bvh.all_hits(o, d, lo, hi, max_hits=2))
+                    bvh.all_hits(o, d, lo, hi, max_hits=2),
+                    bvh.count_hits(o, d, lo, hi, signed=True))
         assert np.array_equal(got[0], want[0]), name
+        assert np.array_equal(got[3], want[3]), name
         same(got[1], want[1])
         same(got[2], want[2])
         if name in ("soup", "terrain"):
