@@ -23,6 +23,10 @@
  *   STACK_SIZE=n  stack entries; a push beyond n sets FLAG_OVERFLOW and skips
  *                 that subtree (the host sizes it from the tree's depth).
  *   COUNT=0|1     the pass.
+ *   SIGNED=1      (COUNT=1) each hit counts by the sign of its crossing, +1
+ *                 leaving a triangle by its front, -1 entering (every_hit.h):
+ *                 a closed mesh's winding number at the origin of a ray from
+ *                 0 to infinity.
  *   SLOTS_ONLY=1  (COUNT=0) a ray fills its slots with its first hits and
  *                 replaces none after, unsorted past them: the host traces
  *                 a ray with more hits than slots again (every_hit.h).

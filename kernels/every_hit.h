@@ -9,7 +9,7 @@
  * vertex counts once). A hit counts only where the ray enters the triangle's
  * own box (accept_hit), so the set of hits does not depend on the tree.
  *
- * Defines (-D): STACK_SIZE, COUNT, SLOTS_ONLY, WIDE and WIDTH, as all_hits.cl
+ * Defines (-D): STACK_SIZE, COUNT, SIGNED, SLOTS_ONLY, WIDE and WIDTH, as all_hits.cl
  * documents them (WIDE=1 adds wide_tree_hits, the walk through wide records,
  * and with it CLANG_MOVMSK, CLANG_CTZ and CLANG_PREFETCH, wide_rows.h). The
  * includer may define HIT_INSTANCE=1: each kept hit then carries an instance
@@ -35,10 +35,12 @@
 #define COUNT 1
 #endif
 /* SIGNED=1 (counting only): each hit counts -1 where the ray enters a
- * triangle's front and +1 where it leaves by it (hit_triangle's sign, negated),
- * so a ray's count is the winding number of its origin for a closed surface
- * (the Jordan-Brouwer degree: a crossing of a consistently oriented closed
- * surface changes the winding number by the crossing's sign), 0 from outside */
+ * triangle's front and +1 where it leaves by it (hit_triangle's sign, negated).
+ * Along a ray from tmin = 0 to infinity, where the winding number of a closed
+ * surface falls to 0, each crossing changes it by the crossing's sign, so the
+ * count is the winding number at the origin (the degree of the surface about
+ * it); the edge rule makes that exact for the rounded, translated corners the
+ * test sees, through shared edges and vertices too. */
 #ifndef SIGNED
 #define SIGNED 0
 #endif
