@@ -165,7 +165,8 @@ def _inside(U, V, W, ax, ay, bx, by, cx, cy, edge_rule: bool) -> np.ndarray:
 def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: np.ndarray,
                skip: np.ndarray, dtype, edge_rule: bool = False, signs: bool = False
                ) -> tuple[np.ndarray, ...]:
-    """Woop 2013 for the pairs (``ray[k]``, ``tri[k]``): ``t, u, v`` per pair, ``t = inf`` on a miss.
+    """Woop 2013 for the pairs (``ray[k]``, ``tri[k]``): ``t, u, v`` per pair, ``t`` NaN on a
+    miss (a hit's ``t`` may be inf: float32's, undone from d * 2^-texp, can overflow).
 
     tmin/tmax are not applied here. Operation order follows kernels/ray_triangle.h;
     ``edge_rule``: its EDGE_RULE (a ray through a shared edge or vertex hits one triangle);
@@ -180,9 +181,11 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
     for corner in range(3):
         vid = f[tri, corner]
         p = [v[vid, axes[:, k]] for k in range(3)]
-        rel = [p[k].astype(dtype) - o[:, k] for k in range(3)]
-        z.append(rel[2])
         with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+            # float32 may overflow here as the kernel's float test does (its double
+            # fallback then decides)
+            rel = [p[k].astype(dtype) - o[:, k] for k in range(3)]
+            z.append(rel[2])
             x.append(rel[0] * ez - rel[2] * ex)
             y.append(rel[1] * ez - rel[2] * ey)
         rel64.append(p)
@@ -243,13 +246,18 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
                 bu[h] = (Vh / deth).astype(np.float32)
                 bv[h] = (Wh / deth).astype(np.float32)
                 sign[h] = np.sign(deth)
-            inside &= _own_box(v, f, rays, ray, tri, t)
-            # t was measured along d * 2^-texp
-            t = np.ldexp(t, -rays.texp[ray]).astype(np.float32)
+            # accept_hit takes a t below its best, INFINITY at most: a t that
+            # overflows along d * 2^-texp is no hit
+            inside &= _own_box(v, f, rays, ray, tri, t) & (t < np.inf)
+            # t was measured along d * 2^-texp; undone it may overflow to inf, as the
+            # kernel's does (keep_hit), and stays a hit, as the float64 oracle's
+            with np.errstate(over="ignore"):
+                t = np.ldexp(t, -rays.texp[ray]).astype(np.float32)
     inside &= ~skip[tri]
+    # a miss is NaN: no comparison takes it, where inf may be a hit's t
     if signs:
-        return np.where(inside, t, np.inf), bu, bv, sign
-    return np.where(inside, t, np.inf), bu, bv
+        return np.where(inside, t, np.nan), bu, bv, sign
+    return np.where(inside, t, np.nan), bu, bv
 
 
 #: The slab test's factor on the far distance (SLAB_PAD in kernels/traverse.cl).
@@ -371,7 +379,7 @@ def _every_hit(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: A
     found = []
     for ray, tri in _candidate_pairs(rays, len(f), blocks, max_pairs):
         t, bu, bv, *sign = _pair_hits(v, f, rays, ray, tri, skip, dtype, edge_rule, signs)
-        ok = (t >= rays.tmin[ray]) & (t <= rays.tmax[ray]) & (t < np.inf)
+        ok = (t >= rays.tmin[ray]) & (t <= rays.tmax[ray])   # NaN: a miss
         found.append((ray[ok], tri[ok], t[ok], bu[ok], bv[ok], *(x[ok] for x in sign)))
     return rays, found
 
@@ -426,7 +434,8 @@ def hits_on(vertices: Any, faces: Any, origins: Any, directions: Any, prims: Any
     rays = _Rays(origins, directions, 0.0, np.inf, dtype)
     prims = np.asarray(prims, np.int64)
     skip = degenerate_triangles(v, f, dtype)
-    return _pair_hits(v, f, rays, np.arange(rays.count), prims, skip, dtype)
+    t, bu, bv = _pair_hits(v, f, rays, np.arange(rays.count), prims, skip, dtype)
+    return np.where(np.isnan(t), np.inf, t), bu, bv
 
 
 def all_hits_brute(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: Any = 0.0,

@@ -9,7 +9,7 @@ import pytest
 
 import lbvh
 from lbvh.verification import hard_cases, meshes
-from lbvh.verification.oracle import all_hits_brute, signed_counts_brute
+from lbvh.verification.oracle import all_hits_brute, brute_force, signed_counts_brute
 from lbvh.queries.all_hits import FIRST_SLOTS
 from lbvh.queries.winding import winding_numbers_numpy
 
@@ -219,6 +219,48 @@ def test_parity_tells_inside_from_outside_on_a_closed_mesh():
     for d in (rng.normal(size=(len(points), 3)).astype(np.float32), target - points):
         counts = bvh.count_hits(points, d.astype(np.float32))
         assert np.array_equal(counts[clear] % 2 == 1, r[clear] < 1)
+
+
+def test_a_hit_whose_t_overflows_float32_is_still_a_hit():
+    """Directions of 1e-20 towards a triangle 1e20 away: t = 1e40, beyond float32.
+    The kernels find it along d * 2^-texp (make_ray), where t is finite, and report
+    t = inf, the float32 rounding of 1e40, as a hit: count_hits and all_hits count
+    it and the closest hit names its triangle, as the float64 oracle does; the
+    float32 twin agrees (a miss is its NaN, not its inf)."""
+    big = np.float32(1e20)
+    v = np.float32([[big, -big / 10, -big / 10], [big, big / 10, -big / 10], [big, 0, big / 10],
+                    [-5, -5, -5], [-5, -4, -5], [-5, -5, -4]])
+    f = np.uint32([[0, 1, 2], [3, 4, 5]])
+    o = np.zeros((4, 3), np.float32)
+    d = np.float32([[1e-20, 0, 0], [1e-20, 1e-22, 0], [1, 0, 0], [-1e-20, 0, 0]])
+    bvh = lbvh.build(v, f)
+    got = bvh.all_hits(o, d)
+    assert got.total.tolist() == [1, 1, 1, 0] and np.isinf(got.t[:2]).all()
+    same(got, all_hits_brute(v, f, o, d, dtype=np.float32))
+    exact = all_hits_brute(v, f, o, d, dtype=np.float64)
+    assert np.array_equal(got.offsets, exact.offsets) and np.array_equal(got.prim, exact.prim)
+    assert np.array_equal(got.t, exact.t)
+    assert np.array_equal(bvh.count_hits(o, d), got.total)
+    assert np.array_equal(bvh.count_hits(o, d, signed=True), signed_counts_brute(v, f, o, d))
+    hit = bvh.intersect(o, d)
+    assert hit.prim.tolist() == [0, 0, 0, -1]
+    for dtype in (np.float32, np.float64):
+        want = brute_force(v, f, o, d, dtype=dtype)
+        assert np.array_equal(hit.prim, want.prim) and np.array_equal(hit.t, want.t)
+    # deep_sah_chain (triangles at +-2^127 .. 2^-150): rays from midpoints between two
+    # corners towards a third, some with t beyond float32, through its deepest trees
+    case = hard_cases.make("deep_sah_chain")
+    v, f = case.vertices, case.faces
+    pick = np.random.default_rng(0).integers(0, len(v), (400, 3))
+    o = ((v[pick[:, 0]].astype(np.float64) + v[pick[:, 1]]) / 2).astype(np.float32)
+    d = (v[pick[:, 2]].astype(np.float64) - o).astype(np.float32)
+    o, d = o[np.abs(d).max(axis=1) > 0], d[np.abs(d).max(axis=1) > 0]
+    want = all_hits_brute(v, f, o, d, dtype=np.float32)
+    assert np.isinf(want.t).sum() > 10
+    for builder in ("lbvh", "sah"):
+        bvh = lbvh.build(v, f, builder=builder)
+        same(bvh.all_hits(o, d), want)
+        assert np.array_equal(bvh.count_hits(o, d), want.total)
 
 
 def test_max_hits_keeps_the_nearest():
