@@ -77,6 +77,7 @@ JOBS = {
     "closest points": lambda: digest(*(lambda c: (c.distance, c.prim, c.u, c.v))(
         shared.closest_points(o[:500]))),
     "count hits": lambda: digest(shared.count_hits(o, d)),
+    "signed hit counts": lambda: digest(shared.count_hits(o, d, signed=True)),
     "all hits": lambda: digest(*(lambda a: (a.offsets, a.t, a.prim))(shared.all_hits(o, d, max_hits=3))),
     "signed distance": lambda: digest(shared.signed_distance(o[:300])),
     "scene intersect": lambda: digest(*(lambda h: (h.t, h.prim, h.instance))(scene.intersect(o, d))),
