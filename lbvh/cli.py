@@ -313,6 +313,17 @@ def _run_query(bvh: Any, kind: str, data: Any, args: argparse.Namespace
         return ({"contains": inside, "winding": w}, summary,
                 [f"inside:    {summary['inside']:,} (winding number > 1/2)"])
     origins, directions = data
+    if kind == "count-hits" and args.signed:
+        if scene:
+            raise ValueError("--signed: a file of placed meshes is counted unsigned only; "
+                             "count one mesh")
+        counts = bvh.count_hits(origins, directions, signed=True)
+        summary = {"signed_sum": int(counts.sum()), "rays_positive": int((counts > 0).sum()),
+                   "rays_negative": int((counts < 0).sum())}
+        return ({"counts": counts}, summary,
+                [f"signed:    {summary['signed_sum']:,} in all (+1 leaving by a front, -1 "
+                 f"entering); {summary['rays_positive']:,} rays above 0, "
+                 f"{summary['rays_negative']:,} below"])
     if kind == "count-hits":
         counts = bvh.count_hits(origins, directions)
         summary = {"hits": int(counts.sum()), "rays_hit": int((counts > 0).sum()),
@@ -342,6 +353,8 @@ def cmd_query(args: argparse.Namespace) -> int:
         folder = Path(args.output).resolve().parent
         if not folder.is_dir():
             raise ValueError(f"{args.output}: cannot write, the folder {folder} does not exist")
+    if args.signed and args.kind != "count-hits":
+        raise ValueError(f"--signed: only for count-hits, not {args.kind}")
     reads = QUERY_KINDS[args.kind][0]
     data = _read_points(args.input) if reads == "points" else _read_rays(args.input)
     scene = load_scene(args.scene)
@@ -534,6 +547,10 @@ def make_parser() -> argparse.ArgumentParser:
                    help="closest: search radius, beyond it a point finds nothing (default: none)")
     p.add_argument("--max-hits", type=int, default=None, metavar="K",
                    help="all-hits: keep the K nearest hits of each ray (default: all)")
+    p.add_argument("--signed", action="store_true",
+                   help="count-hits: count each crossing +1 where the ray leaves a triangle by "
+                        "its front, -1 where it enters (from 0 to infinity on a closed mesh: the "
+                        "winding number of the ray's origin)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     _add_build_options(p)
     p.set_defaults(func=cmd_query)

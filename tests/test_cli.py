@@ -401,6 +401,17 @@ def test_query_ray_counts_and_all_hits(capsys, tmp_path):
         for name in ("offsets", "t", "prim", "total"):
             assert np.array_equal(got[name], getattr(want, name)), name
     assert summary["hits"] == len(want.t) and summary["rays"] == 200
+    # signed counts: the API's, and refused for another kind
+    assert main(["query", "count-hits", "teapot", str(tmp_path / "rays.csv"), "--signed",
+                 "-o", str(tmp_path / "s.npz"), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    signed = bvh.count_hits(o, d, signed=True)
+    with np.load(tmp_path / "s.npz") as got:
+        assert np.array_equal(got["counts"], signed)
+    assert summary["signed_sum"] == int(signed.sum()) and (signed != 0).any()
+    assert summary["rays_negative"] == int((signed < 0).sum())
+    assert main(["query", "all-hits", "teapot", str(tmp_path / "rays.csv"), "--signed"]) == 2
+    assert "--signed: only for count-hits" in capsys.readouterr().err
     # rays of the wrong shape: one line, exit 2
     np.save(tmp_path / "bad.npy", np.zeros((3, 3)))
     assert main(["query", "count-hits", "teapot", str(tmp_path / "bad.npy")]) == 2
@@ -508,6 +519,8 @@ def test_query_through_a_file_of_placed_meshes(capsys, tmp_path):
     assert summary["instances"] == 3 and summary["hits"] == int(counts.sum()) > 0
     with np.load(out) as got:
         assert np.array_equal(got["counts"], counts)
+    assert main(["query", "count-hits", str(path), str(tmp_path / "rays.npy"), "--signed"]) == 2
+    assert "placed meshes is counted unsigned only" in capsys.readouterr().err
     assert main(["query", "all-hits", str(path), str(tmp_path / "rays.npy"), "-o", str(out),
                  "--max-hits", "2", "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
