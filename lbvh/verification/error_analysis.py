@@ -99,9 +99,9 @@ def pair_geometry(case: Case, ray: np.ndarray, tri: np.ndarray, degenerate32: np
     """:class:`PairGeometry` of the pairs (``ray[k]``, ``tri[k]``).
 
     ``degenerate32/64`` (one per pair) say whether
-    :func:`lbvh.queries.traverse.degenerate_triangles` calls ``tri[k]`` degenerate in float32 (the kernel never hits those) and in
-    float64 (the oracle's decision); triangles degenerate in one precision only
-    may be hit or not.
+    :func:`lbvh.queries.traverse.degenerate_triangles` calls ``tri[k]`` degenerate in
+    float32 (the kernel never hits those) and in float64 (the oracle's decision);
+    triangles degenerate in one precision only may be hit or not.
     """
 
     with np.errstate(all="ignore"):  # parallel rays and infinite bounds make NaN on purpose

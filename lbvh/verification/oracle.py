@@ -163,14 +163,14 @@ def _inside(U, V, W, ax, ay, bx, by, cx, cy, edge_rule: bool) -> np.ndarray:
 
 
 def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: np.ndarray,
-               skip: np.ndarray, dtype, edge_rule: bool = False, signs: bool = False
-               ) -> tuple[np.ndarray, ...]:
+               skip: np.ndarray, dtype, edge_rule: bool = False
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Woop 2013 for the pairs (``ray[k]``, ``tri[k]``): ``t, u, v`` per pair, ``t`` NaN on a
     miss (a hit's ``t`` may be inf: float32's, undone from d * 2^-texp, can overflow).
 
     tmin/tmax are not applied here. Operation order follows kernels/ray_triangle.h;
     ``edge_rule``: its EDGE_RULE (a ray through a shared edge or vertex hits one triangle);
-    ``signs``: the sign of each pair's det as well (hit_triangle's return: +1 where the
+    the fourth value is the sign of each pair's det (hit_triangle's return: +1 where the
     ray enters the front), from the arithmetic the test took.
     """
     axes = rays.axes[ray]
@@ -255,9 +255,7 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
                 t = np.ldexp(t, -rays.texp[ray]).astype(np.float32)
     inside &= ~skip[tri]
     # a miss is NaN: no comparison takes it, where inf may be a hit's t
-    if signs:
-        return np.where(inside, t, np.nan), bu, bv, sign
-    return np.where(inside, t, np.nan), bu, bv
+    return np.where(inside, t, np.nan), bu, bv, sign
 
 
 #: The slab test's factor on the far distance (SLAB_PAD in kernels/traverse.cl).
@@ -361,10 +359,10 @@ def _candidate_pairs(rays: _Rays, num_tris: int, blocks, max_pairs: int):
 
 
 def _every_hit(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: Any, tmax: Any,
-               dtype, cull: bool, max_pairs: int, edge_rule: bool, signs: bool = False
+               dtype, cull: bool, max_pairs: int, edge_rule: bool
                ) -> tuple[_Rays, list[tuple[np.ndarray, ...]]]:
-    """Every (ray, triangle, t, u, v) hit in ``[tmin, tmax]``, in chunks (``signs``: and
-    the sign of its det, :func:`_pair_hits`)."""
+    """Every (ray, triangle, t, u, v, sign of det) hit in ``[tmin, tmax]``, in chunks
+    (:func:`_pair_hits`)."""
     dtype = np.dtype(dtype).type
     if dtype not in (np.float32, np.float64):
         raise ValueError(f"dtype: {dtype}; expected float32 or float64")
@@ -378,9 +376,9 @@ def _every_hit(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: A
         blocks = _blocks(v, f, BLOCK_PADDING * scale)
     found = []
     for ray, tri in _candidate_pairs(rays, len(f), blocks, max_pairs):
-        t, bu, bv, *sign = _pair_hits(v, f, rays, ray, tri, skip, dtype, edge_rule, signs)
+        t, bu, bv, sign = _pair_hits(v, f, rays, ray, tri, skip, dtype, edge_rule)
         ok = (t >= rays.tmin[ray]) & (t <= rays.tmax[ray])   # NaN: a miss
-        found.append((ray[ok], tri[ok], t[ok], bu[ok], bv[ok], *(x[ok] for x in sign)))
+        found.append((ray[ok], tri[ok], t[ok], bu[ok], bv[ok], sign[ok]))
     return rays, found
 
 
@@ -408,7 +406,7 @@ def brute_force(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: 
                u=np.zeros(n, np.float32), v=np.zeros(n, np.float32),
                overflow=np.zeros(n, bool), overflow_count=0)
     if found:
-        ray, tri, t, bu, bv = (np.concatenate(cols) for cols in zip(*found))
+        ray, tri, t, bu, bv, _ = (np.concatenate(cols) for cols in zip(*found))
         order = np.lexsort((tri, t, ray))            # by ray, then t, then triangle index
         first = order[np.unique(ray[order], return_index=True)[1]]
         r = ray[first]
@@ -434,7 +432,7 @@ def hits_on(vertices: Any, faces: Any, origins: Any, directions: Any, prims: Any
     rays = _Rays(origins, directions, 0.0, np.inf, dtype)
     prims = np.asarray(prims, np.int64)
     skip = degenerate_triangles(v, f, dtype)
-    t, bu, bv = _pair_hits(v, f, rays, np.arange(rays.count), prims, skip, dtype)
+    t, bu, bv, _ = _pair_hits(v, f, rays, np.arange(rays.count), prims, skip, dtype)
     return np.where(np.isnan(t), np.inf, t), bu, bv
 
 
@@ -453,7 +451,7 @@ def all_hits_brute(vertices: Any, faces: Any, origins: Any, directions: Any, tmi
                              max_pairs, edge_rule=True)
     n = rays.count
     if found:
-        ray, tri, t, bu, bv = (np.concatenate(cols) for cols in zip(*found))
+        ray, tri, t, bu, bv, _ = (np.concatenate(cols) for cols in zip(*found))
     else:
         ray, tri = np.zeros(0, np.int64), np.zeros(0, np.int64)
         t = bu = bv = np.zeros(0)
@@ -479,9 +477,8 @@ def signed_counts_brute(vertices: Any, faces: Any, origins: Any, directions: Any
     rounded, as the kernel's; a sliver's can differ in sign from the exact ``n . d``,
     consistently for the triangles of a closed surface): ``int64 (N,)``."""
     rays, found = _every_hit(vertices, faces, origins, directions, tmin, tmax, dtype, cull,
-                             max_pairs, edge_rule=True, signs=True)
+                             max_pairs, edge_rule=True)
     if not found:
         return np.zeros(rays.count, np.int64)
-    ray = np.concatenate([c[0] for c in found])
-    sign = np.concatenate([c[5] for c in found])
+    ray, *_, sign = (np.concatenate(cols) for cols in zip(*found))
     return np.bincount(ray, weights=-sign, minlength=rays.count).astype(np.int64)
