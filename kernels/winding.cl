@@ -13,8 +13,8 @@
  * order, ORDER=2, or the first, ORDER=1):
  *   omega ~ N . r / |r|^3 + tr(M) / |r|^3 - 3 r^T M r / |r|^5 + (second order),
  * r = p - q, N = sum of the triangles' vector areas a_t, M = sum of
- * a_t (c_t - p)^T with c_t the centroids; the second-order term is
- * SECOND_ORDER_W's. "Far enough" is |r| > beta * R, R the distance from p to
+ * a_t (c_t - p)^T with c_t the centroids; FAR_TERM evaluates it, the
+ * second-order terms with it. "Far enough" is |r| > beta * R, R the distance from p to
  * the farthest corner of the node's box (every triangle of the node lies
  * within R of p), and |r|^5 >= A R^3 / (4 pi e), A the node's triangle area:
  * the expansion's error, about A / (4 pi r^2) (R / r)^3, at most e
@@ -23,7 +23,7 @@
  *
  * Moments, ROWS floats per node (winding_moments.cl makes them):
  *   [0..2] p, [3] R^2, [4..6] N, [7..15] M row by row (M[j][k] = m[7 + 3j + k]),
- *   with ORDER=2 also [16..18] g and [19..36] K (SECOND_ORDER_W); last
+ *   with ORDER=2 also [16..18] g and [19..36] K (FAR_TERM); last
  *   ([ROWS - 1]) the far floor A R^3 / (4 pi e).
  * beta2 is beta^2; floor_scale multiplies the floor, NODE_ERROR over the
  * pass's own error target per node (1 for the node error the moments were
@@ -37,13 +37,15 @@
  * far, and adds 0), and one record's lanes are tested and expanded in one
  * vector computation; the lanes that are near are summed (leaves) or pushed
  * (records). The near leaves' first triangles are summed in one vector
- * computation too, from the corner rows (solid_angles): with one triangle a
+ * computation too, from the corner rows (SOLID_ANGLES): with one triangle a
  * leaf, as the default tree's, that read and sum of the corners one triangle
  * at a time through slot_faces was half the walk's time on Sponza (perf), and
  * the rows took it to 1.5x the points per second (bench/README.md). Every node
  * expanded meets the same test as in the binary walk; a node that the binary
  * walk expands but that is not a lane (a record's inner nodes, the root) is
- * expanded through its lanes instead, which is as close or closer.
+ * expanded through its lanes instead, which is as close or closer. A second
+ * kernel, winding_packets (below), walks the same records for 16 points a
+ * work-item, the vectors then the points (a CPU's choice).
  *
  * Defines:
  *   STACK_SIZE=n  stack entries; a push beyond n sets FLAG_OVERFLOW and skips
@@ -56,6 +58,8 @@
  *                 37 or 16); 2 unless told.
  *   WIDE=1        walk the wide records (`nodes` is then the records, the root
  *                 their reference (root, root_y)); WIDTH=4 or 8 lanes.
+ *   CLANG_PREFETCH=1  winding_packets asks a record it pushes into the cache
+ *                 with clang's builtin (the host: where the compiler is clang).
  *   SCALED=1|2    every difference (a corner or a node's centre minus q) is
  *                 multiplied by `scale`, a power of two that brings the mesh to
  *                 about unit size, and the moments are the scaled mesh's
@@ -150,22 +154,85 @@ inline float solid_angle(float3 q, float3 p0, float3 p1, float3 p2, float scale)
     return 2.0f * atan2_poly(num, den);
 }
 
-/* The second-order term of a far node's expansion (ORDER=2; Barill et al. 2018,
- * section 3.2): 1/2 H_ijk d_j d_k f_i(p), f(x) = (x - q) / |x - q|^3, for
- * H_ijk = sum_t a_t,i S_t,jk, S_t the mean of (x - p)(x - p)^T over triangle t:
- *   g . r / |r|^5 + sum_i r_i (K_i . rr) / |r|^7,  rr = (x^2, y^2, z^2, xy, xz, yz),
- * m[16..18] = g = -3/2 (2 u + t) (u_k = H_iik, t_i = H_ijj) and m[19 + 6 i ..] = K_i,
- * 15/2 H_i.. over those pairs with the mixed ones doubled (winding.py, node_moments).
- * inv5 = 1/|r|^5, inv = 1/|r|; works on float or floatw rows alike. */
-#define SECOND_ORDER_W(m, x, y, z, inv5, inv)                                              \
-    (((m)[16] * (x) + (m)[17] * (y) + (m)[18] * (z)) * (inv5) +                           \
-     ((x) * ((m)[19] * (x) * (x) + (m)[20] * (y) * (y) + (m)[21] * (z) * (z) +              \
-             (m)[22] * (x) * (y) + (m)[23] * (x) * (z) + (m)[24] * (y) * (z)) +             \
-      (y) * ((m)[25] * (x) * (x) + (m)[26] * (y) * (y) + (m)[27] * (z) * (z) +              \
-             (m)[28] * (x) * (y) + (m)[29] * (x) * (z) + (m)[30] * (y) * (z)) +             \
-      (z) * ((m)[31] * (x) * (x) + (m)[32] * (y) * (y) + (m)[33] * (z) * (z) +              \
-             (m)[34] * (x) * (y) + (m)[35] * (x) * (z) + (m)[36] * (y) * (z))) *            \
-         (inv5) * (inv) * (inv))
+/* A far node's expansion (Barill et al. 2018, section 3.2) at r = p - q, with
+ * its terms grouped by the power of |r| they are divided by:
+ *   inv3 (N.r + tr M + inv2 (g.r - 3 r^T M r + inv2 C(r))),
+ * inv3 = 1/|r|^3, inv2 = 1/|r|^2, C(r) = sum_i r_i (K_i . rr), the second
+ * order's cubic (rr = (x^2, y^2, z^2, xy, xz, yz), m[16..18] = g, m[19 + 6 i ..]
+ * = K_i: winding_moments.py node_moments), summed by its 10 monomials, and
+ * r^T M r by its 6. M(j) is row j of the node's moments (a float, or a vector
+ * of lanes); r's components, r2 = |r|^2, r1 = |r| (the far test's) and the
+ * result are of type T (float or a vector of points or lanes). One grouping
+ * for every walk, with fewer operations than the terms one by one. */
+#define FAR_TERM(T, M, x, y, z, r2, r1, out)                                               \
+    T out;                                                                                 \
+    do {                                                                                   \
+        const T xx_ = (x) * (x), yy_ = (y) * (y), zz_ = (z) * (z);                         \
+        const T inv3_ = (T)(1.0f) / ((r2) * (r1));                                         \
+        const T inv2_ = inv3_ * (r1);                                                      \
+        const T xy_ = (x) * (y), xz_ = (x) * (z), yz_ = (y) * (z);                         \
+        const T quad_ = -3.0f * (M(7) * xx_ + M(11) * yy_ + M(15) * zz_ +                  \
+                                 (M(8) + M(10)) * xy_ + (M(9) + M(13)) * xz_ +             \
+                                 (M(12) + M(14)) * yz_);                                   \
+        out = inv3_ * (M(4) * (x) + M(5) * (y) + M(6) * (z) + (M(7) + M(11) + M(15)) +      \
+                       inv2_ * (quad_ + SECOND_TERM(M, x, y, z, xx_, yy_, zz_, xy_, inv2_))); \
+    } while (0)
+#if ORDER == 2
+#define SECOND_TERM(M, x, y, z, xx, yy, zz, xy, inv2)                                      \
+    (M(16) * (x) + M(17) * (y) + M(18) * (z) +                                             \
+     (inv2) * (M(19) * (xx) * (x) + M(26) * (yy) * (y) + M(33) * (zz) * (z) +              \
+               (M(22) + M(25)) * (xx) * (y) + (M(23) + M(31)) * (xx) * (z) +               \
+               (M(20) + M(28)) * (yy) * (x) + (M(30) + M(32)) * (yy) * (z) +               \
+               (M(21) + M(35)) * (zz) * (x) + (M(27) + M(36)) * (zz) * (y) +               \
+               (M(24) + M(29) + M(34)) * (xy) * (z)))
+#else
+#define SECOND_TERM(M, x, y, z, xx, yy, zz, xy, inv2) 0.0f
+#endif
+
+/* atan2_poly lane by lane, by the same operations, with masks for its choices
+ * (PoCL 3 calls select() out of line), into `out`: over vectors of type T
+ * (integer vectors IT, AS_T / AS_IT their reinterpretations). A macro, not a
+ * function: no vector of more than 32 bytes may cross a call on PoCL 3, and
+ * clang warns of one even where the call is inlined. */
+#define ATAN2_LANES(T, IT, AS_T, AS_IT, y, x, out)                                         \
+    T out;                                                                                 \
+    do {                                                                                   \
+        const IT atan_abs_ = (IT)(0x7fffffff);                                             \
+        const T atan_ax_ = AS_T(AS_IT(x) & atan_abs_);                                     \
+        const T atan_ay_ = AS_T(AS_IT(y) & atan_abs_);                                     \
+        const IT atan_steep_ = atan_ay_ > atan_ax_;                                        \
+        const T atan_num_ =                                                                \
+            AS_T((AS_IT(atan_ax_) & atan_steep_) | (AS_IT(atan_ay_) & ~atan_steep_));      \
+        const T atan_den_ =                                                                \
+            AS_T((AS_IT(atan_ay_) & atan_steep_) | (AS_IT(atan_ax_) & ~atan_steep_));      \
+        const T atan_t_ = AS_T(AS_IT(atan_num_ / atan_den_) & (atan_den_ != (T)(0.0f)));   \
+        const T atan_s_ = atan_t_ * atan_t_;                                               \
+        T atan_a_ = ATAN_P(atan_s_);                                                       \
+        atan_a_ *= atan_t_;                                                                \
+        atan_a_ = AS_T((AS_IT((T)(M_PI_2_F) - atan_a_) & atan_steep_) |                    \
+                       (AS_IT(atan_a_) & ~atan_steep_));                                   \
+        const IT atan_negative_ = AS_IT(x) < (IT)(0);                                      \
+        atan_a_ = AS_T((AS_IT((T)(M_PI_F) - atan_a_) & atan_negative_) |                   \
+                       (AS_IT(atan_a_) & ~atan_negative_));                                \
+        out = AS_T(AS_IT(atan_a_) | (AS_IT(y) & (IT)(0x80000000)));                        \
+    } while (0)
+
+/* solid_angle lane by lane, of the triangles whose corners minus q are a, b, c
+ * (components of type T, integer vectors IT), into `out`. */
+#define SOLID_ANGLES(T, IT, AS_T, AS_IT, SQRT, ax, ay, az, bx, by, bz, cx, cy, cz, out)   \
+    T out;                                                                                 \
+    do {                                                                                   \
+        const T la2_ = ax * ax + ay * ay + az * az;                                        \
+        const T lb2_ = bx * bx + by * by + bz * bz;                                        \
+        const T lc2_ = cx * cx + cy * cy + cz * cz;                                        \
+        const T la_ = SQRT(la2_), lb_ = SQRT(lb2_), lc_ = SQRT(lc2_);                      \
+        const T num_ = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) +               \
+                       az * (bx * cy - by * cx);                                           \
+        const T den_ = la_ * lb_ * lc_ + (ax * bx + ay * by + az * bz) * lc_ +              \
+                       (ax * cx + ay * cy + az * cz) * lb_ + (bx * cx + by * cy + bz * cz) * la_; \
+        ATAN2_LANES(T, IT, AS_T, AS_IT, num_, den_, half_);                                \
+        out = (T)(2.0f) * half_;                                                           \
+    } while (0)
 
 /* The exact solid angles of the triangles of slots [first, end), added to w. */
 #define LEAF_SUM(first, end)                                                               \
@@ -173,6 +240,15 @@ inline float solid_angle(float3 q, float3 p0, float3 p1, float3 p2, float scale)
         w += solid_angle(q, load_float3(vertices, slot_faces[3 * s]),                      \
                          load_float3(vertices, slot_faces[3 * s + 1]),                     \
                          load_float3(vertices, slot_faces[3 * s + 2]), scale);
+
+/* The arguments of both kernels (lbvh/queries/winding.py passes the same). */
+#define WINDING_ARGS                                                                       \
+    __global const float4 *nodes, __global const float *moments,                           \
+        __global const float *vertices, __global const uint *slot_faces, const int root,   \
+        const int root_y, const int num_nodes, __global const float *points,               \
+        __global const int *order, const int count, const float beta2,                     \
+        const float floor_scale, const float scale, __global float *winding,               \
+        __global int *flags
 
 #if WIDE
 #include "wide_rows.h"
@@ -188,53 +264,93 @@ inline float lanes_sum(floatw v) {
     return d.x + d.y;
 }
 
-/* atan2_poly lane by lane, by the same operations, with masks for its choices
- * (PoCL 3 calls select() out of line). */
 inline floatw atan2_polyw(floatw y, floatw x) {
-    const intw magnitude = (intw)(0x7fffffff);
-    const floatw ax = as_floatw(as_intw(x) & magnitude), ay = as_floatw(as_intw(y) & magnitude);
-    const intw steep = ay > ax;
-    const floatw num = as_floatw((as_intw(ax) & steep) | (as_intw(ay) & ~steep));
-    const floatw den = as_floatw((as_intw(ay) & steep) | (as_intw(ax) & ~steep));
-    const floatw t = as_floatw(as_intw(num / den) & (den != (floatw)(0.0f)));
-    const floatw s = t * t;
-    floatw a = ATAN_P(s);
-    a *= t;
-    a = as_floatw((as_intw((floatw)(M_PI_2_F) - a) & steep) | (as_intw(a) & ~steep));
-    const intw negative = as_intw(x) < (intw)(0);
-    a = as_floatw((as_intw((floatw)(M_PI_F) - a) & negative) | (as_intw(a) & ~negative));
-    return as_floatw(as_intw(a) | (as_intw(y) & (intw)(0x80000000)));
+    ATAN2_LANES(floatw, intw, as_floatw, as_intw, y, x, a);
+    return a;
 }
 
-/* solid_angle lane by lane, of the triangles whose corners are the rows
- * c[0..8] (a record's CORNER_ROWS); forced inline (PoCL 3 kept it out of
- * line, and its float8 result went through memory). */
-__attribute__((always_inline)) inline floatw solid_angles(float3 q, __global const floatw *c,
-                                                          float scale) {
-    const floatw ax = DIFF(c[0], (floatw)(q.x)), ay = DIFF(c[1], (floatw)(q.y)),
-                 az = DIFF(c[2], (floatw)(q.z));
-    const floatw bx = DIFF(c[3], (floatw)(q.x)), by = DIFF(c[4], (floatw)(q.y)),
-                 bz = DIFF(c[5], (floatw)(q.z));
-    const floatw cx = DIFF(c[6], (floatw)(q.x)), cy = DIFF(c[7], (floatw)(q.y)),
-                 cz = DIFF(c[8], (floatw)(q.z));
-    const floatw la = SQRTW(ax * ax + ay * ay + az * az);
-    const floatw lb = SQRTW(bx * bx + by * by + bz * bz);
-    const floatw lc = SQRTW(cx * cx + cy * cy + cz * cz);
-    const floatw num = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) +
-                       az * (bx * cy - by * cx);
-    const floatw den = la * lb * lc + (ax * bx + ay * by + az * bz) * lc +
-                       (ax * cx + ay * cy + az * cz) * lb + (bx * cx + by * cy + bz * cz) * la;
-    return (floatw)(2.0f) * atan2_polyw(num, den);
-}
+/* A record's moment row j, all lanes (the per-point walk) or lane c (`ml`, the
+ * packets' walk). */
+#define ROW_W(j) m[j]
+#define ROW_L(j) ml[(j) * WIDTH]
+
+/* The packets' walk (winding_packets): PACKET = 16 points a work-item, one
+ * float16 a coordinate. */
+#define PACKET 16
+typedef float16 floatp;
+typedef int16 intp;
+typedef union { floatp v; float s[PACKET]; } floatp_lanes;
+/* The helpers of float16 and int16 values are macros, not functions: no vector
+ * of more than 32 bytes may cross a call on PoCL 3 (kernels compiled for a
+ * target without AVX-512 pass it differently), and clang warns of one even
+ * where the call is inlined. */
+#if INLINE_SQRT
+/* common.h's inline square root, 16 lanes (of a variable: v is read 16 times) */
+#define SQRTP(v)                                                                           \
+    ((float16)(__builtin_sqrtf((v).s0), __builtin_sqrtf((v).s1), __builtin_sqrtf((v).s2),    \
+               __builtin_sqrtf((v).s3), __builtin_sqrtf((v).s4), __builtin_sqrtf((v).s5),    \
+               __builtin_sqrtf((v).s6), __builtin_sqrtf((v).s7), __builtin_sqrtf((v).s8),    \
+               __builtin_sqrtf((v).s9), __builtin_sqrtf((v).sa), __builtin_sqrtf((v).sb),    \
+               __builtin_sqrtf((v).sc), __builtin_sqrtf((v).sd), __builtin_sqrtf((v).se),    \
+               __builtin_sqrtf((v).sf)))
+#else
+#define SQRTP sqrt
+#endif
+#define as_floatp as_float16
+#define as_intp as_int16
+
+/* The least (LESS <) or the largest (>) lane of v into `out`, by comparisons
+ * (fmin and fmax PoCL 3 calls out of line). */
+#define LANES_EXTREME(v, LESS, out)                                                        \
+    float out;                                                                             \
+    do {                                                                                   \
+        const float8 a8_ = (v).lo LESS (v).hi ? (v).lo : (v).hi;                           \
+        const float4 a4_ = a8_.lo LESS a8_.hi ? a8_.lo : a8_.hi;                           \
+        const float2 a2_ = a4_.lo LESS a4_.hi ? a4_.lo : a4_.hi;                           \
+        out = a2_.x LESS a2_.y ? a2_.x : a2_.y;                                            \
+    } while (0)
+
+/* A packet's lanes as 16 bits (of a comparison's lanes, 0 or -1), and back. */
+#define PACKET_BITS_OF(v, out)                                                             \
+    uint out;                                                                              \
+    do {                                                                                   \
+        const intp b16_ = (v) & (intp)(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048,   \
+                                       4096, 8192, 16384, 32768);                          \
+        const int8 b8_ = b16_.lo | b16_.hi;                                                \
+        const int4 b4_ = b8_.lo | b8_.hi;                                                  \
+        const int2 b2_ = b4_.lo | b4_.hi;                                                  \
+        out = (uint)(b2_.x | b2_.y);                                                       \
+    } while (0)
+#define PACKET_MASK(bits)                                                                  \
+    (((intp)((int)(bits)) & (intp)(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048, 4096, \
+                                   8192, 16384, 32768)) != (intp)(0))
+
+/* The exact solid angles at the packet's points of the triangle with corners
+ * (scalars) p0, p1, p2, added to w where `mask` (a comparison's lanes) is set. */
+#define PACKET_TRIANGLE(p0x, p0y, p0z, p1x, p1y, p1z, p2x, p2y, p2z, mask)                 \
+    do {                                                                                   \
+        const floatp ax = DIFF((floatp)(p0x), qx), ay = DIFF((floatp)(p0y), qy),           \
+                     az = DIFF((floatp)(p0z), qz);                                         \
+        const floatp bx = DIFF((floatp)(p1x), qx), by = DIFF((floatp)(p1y), qy),           \
+                     bz = DIFF((floatp)(p1z), qz);                                         \
+        const floatp cx = DIFF((floatp)(p2x), qx), cy = DIFF((floatp)(p2y), qy),           \
+                     cz = DIFF((floatp)(p2z), qz);                                         \
+        SOLID_ANGLES(floatp, intp, as_floatp, as_intp, SQRTP, ax, ay, az, bx, by, bz, cx, cy, \
+                     cz, sa);                                                              \
+        w += as_floatp(as_intp(sa) & (mask));                                              \
+    } while (0)
+/* ... of the triangles of slots [first, end) */
+#define PACKET_LEAF(first, end, mask)                                                      \
+    for (int s = (first); s < (end); ++s) {                                                \
+        const uint f0 = slot_faces[3 * s], f1 = slot_faces[3 * s + 1];                     \
+        const uint f2 = slot_faces[3 * s + 2];                                             \
+        PACKET_TRIANGLE(vertices[3 * f0], vertices[3 * f0 + 1], vertices[3 * f0 + 2],      \
+                        vertices[3 * f1], vertices[3 * f1 + 1], vertices[3 * f1 + 2],      \
+                        vertices[3 * f2], vertices[3 * f2 + 1], vertices[3 * f2 + 2], mask); \
+    }
 #endif
 
-__kernel void winding_numbers(__global const float4 *nodes, __global const float *moments,
-                              __global const float *vertices, __global const uint *slot_faces,
-                              const int root, const int root_y, const int num_nodes,
-                              __global const float *points, __global const int *order,
-                              const int count, const float beta2, const float floor_scale,
-                              const float scale,
-                              __global float *winding, __global int *flags) {
+__kernel void winding_numbers(WINDING_ARGS) {
     const int k = get_global_id(0);
     if (k >= count) return;
     const int i = point_index(order, k);
@@ -270,25 +386,23 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
                 const intw far_lanes = far & (m[3] >= (floatw)(0.0f));
                 const intw near_leaves = ~far & (y_row < (intw)(0));
                 if (lane_bits(far_lanes) != 0u) {
-                    /* the far lanes' expansions (Barill et al. 2018), as the binary walk's */
-                    const floatw inv = (floatw)(1.0f) / r1;
-                    const floatw inv3 = inv * inv * inv;
-                    const floatw mrx = m[7] * rx + m[8] * ry + m[9] * rz;
-                    const floatw mry = m[10] * rx + m[11] * ry + m[12] * rz;
-                    const floatw mrz = m[13] * rx + m[14] * ry + m[15] * rz;
-                    const floatw term =
-                        (m[4] * rx + m[5] * ry + m[6] * rz) * inv3 + (m[7] + m[11] + m[15]) * inv3 -
-                        (floatw)(3.0f) * (rx * mrx + ry * mry + rz * mrz) * inv3 * inv * inv
-#if ORDER == 2
-                        + SECOND_ORDER_W(m, rx, ry, rz, inv3 * inv * inv, inv)
-#endif
-                        ;
-                    /* term where far, +0 elsewhere: a mask, not select(), which PoCL 3
+                    /* the far lanes' expansions (Barill et al. 2018), as the binary walk's;
+                     * the term where far, +0 elsewhere: a mask, not select(), which PoCL 3
                      * calls out of line */
+                    FAR_TERM(floatw, ROW_W, rx, ry, rz, r2, r1, term);
                     wv += as_floatw(as_intw(term) & far_lanes);
                 }
-                if (lane_bits(near_leaves) != 0u)
-                    wv += as_floatw(as_intw(solid_angles(q, m + ROWS, scale)) & near_leaves);
+                if (lane_bits(near_leaves) != 0u) {
+                    /* the corner rows: each lane's first triangle */
+                    __global const floatw *c = m + ROWS;
+                    const floatw qx = (floatw)(q.x), qy = (floatw)(q.y), qz = (floatw)(q.z);
+                    const floatw ax = DIFF(c[0], qx), ay = DIFF(c[1], qy), az = DIFF(c[2], qz);
+                    const floatw bx = DIFF(c[3], qx), by = DIFF(c[4], qy), bz = DIFF(c[5], qz);
+                    const floatw cx = DIFF(c[6], qx), cy = DIFF(c[7], qy), cz = DIFF(c[8], qz);
+                    SOLID_ANGLES(floatw, intw, as_floatw, as_intw, SQRTW, ax, ay, az, bx, by, bz,
+                                 cx, cy, cz, sa);
+                    wv += as_floatw(as_intw(sa) & near_leaves);
+                }
                 __global const int *ref = words + 8 * WIDTH * record + 6 * WIDTH;
                 for (uint bits = lane_bits(~far & (y_row < (intw)(-1) | y_row >= (intw)(0)));
                      bits != 0u; bits &= bits - 1u) {
@@ -308,6 +422,7 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
         }
     }
 #else
+#define ROW_B(j) m[j]
     int node = root;
     for (;;) {
         if (node >= 0 && visits++ < num_nodes) {
@@ -318,18 +433,8 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
             const float r1 = sqrt1(r2);
             if (r2 > beta2 * m[3] && r2 * r2 * r1 >= floor_scale * m[FLOOR_ROW]) {
                 /* far: the expansion (Barill et al. 2018) */
-                const float inv = 1.0f / r1;
-                const float inv3 = inv * inv * inv;
-                const float3 n = (float3)(m[4], m[5], m[6]);
-                const float3 mr = (float3)(m[7] * r.x + m[8] * r.y + m[9] * r.z,
-                                           m[10] * r.x + m[11] * r.y + m[12] * r.z,
-                                           m[13] * r.x + m[14] * r.y + m[15] * r.z);
-                w += dot(n, r) * inv3 + (m[7] + m[11] + m[15]) * inv3 -
-                     3.0f * dot(r, mr) * inv3 * inv * inv
-#if ORDER == 2
-                     + SECOND_ORDER_W(m, r.x, r.y, r.z, inv3 * inv * inv, inv)
-#endif
-                     ;
+                FAR_TERM(float, ROW_B, r.x, r.y, r.z, r2, r1, term);
+                w += term;
                 node = -1;
             } else if (node_is_leaf(b)) {
                 LEAF_SUM(a, a - b);
@@ -351,3 +456,156 @@ __kernel void winding_numbers(__global const float4 *nodes, __global const float
     winding[i] = w * (0.25f * M_1_PI_F);
     flags[i] = flag;
 }
+
+#if WIDE
+/* The same sums for PACKET points at once, a work-item a packet (the host's
+ * choice on a CPU, lbvh/queries/winding.py use_packets; with the points in
+ * their Morton order, nearby points share a packet). The walk goes through the
+ * wide records as the per-point walk does, but its vectors are the packet's 16
+ * points, not a record's lanes, each point with the same tests as its own walk:
+ * a lane is expanded for the points far from it and opened for the others (a
+ * leaf summed exactly, a record pushed with the bits of the points that walk
+ * it). A point's terms are added in the lanes' order whatever its companions,
+ * so its sum is the same in any packet (not the per-point kernel's, whose
+ * lanes are summed in another order). On Sponza's 1M bench points a packet
+ * visits 1.12x the nodes one point does (a simulation of the binary walk), and
+ * its arithmetic is 16 points wide where the per-point walk leaves most lanes
+ * idle near the surface: about 2x the points per second (bench/README.md).
+ *
+ * A record's lanes near the packet's whole sphere (centre q0, the middle of
+ * the points' box, radius rho) are found in one vector computation, and opened
+ * without the points' own tests: past the sphere's bound plus a relative slack
+ * of 1e-6 (rho too carries 1e-6, far more than their float32 rounding), every
+ * point's own test says near as well.
+ *
+ * The packet's points are read as three float16 from `points` + 3 * first,
+ * which the host makes sure is 64-byte aligned (a whole buffer's start, first
+ * a multiple of 16); a last, partial packet reads its points one by one, and
+ * its spare lanes repeat its last point but walk nothing. */
+__kernel void winding_packets(WINDING_ARGS) {
+    const int first = get_global_id(0) * PACKET;
+    if (first >= count) return;
+    floatp qx, qy, qz;
+    if (first + PACKET <= count) {
+        __global const float16 *pv = (__global const float16 *)(points + 3 * first);
+        const float16 a = pv[0], b = pv[1], c = pv[2];     /* x y z interleaved */
+        qx = (float16)(a.s0, a.s3, a.s6, a.s9, a.sc, a.sf, b.s2, b.s5, b.s8, b.sb, b.se,
+                       c.s1, c.s4, c.s7, c.sa, c.sd);
+        qy = (float16)(a.s1, a.s4, a.s7, a.sa, a.sd, b.s0, b.s3, b.s6, b.s9, b.sc, b.sf,
+                       c.s2, c.s5, c.s8, c.sb, c.se);
+        qz = (float16)(a.s2, a.s5, a.s8, a.sb, a.se, b.s1, b.s4, b.s7, b.sa, b.sd, c.s0,
+                       c.s3, c.s6, c.s9, c.sc, c.sf);
+    } else {
+        floatp_lanes sx, sy, sz;
+        for (int j = 0; j < PACKET; ++j) {
+            const int k = first + j < count ? first + j : count - 1;
+            sx.s[j] = points[3 * k];
+            sy.s[j] = points[3 * k + 1];
+            sz.s[j] = points[3 * k + 2];
+        }
+        qx = sx.v;
+        qy = sy.v;
+        qz = sz.v;
+    }
+    LANES_EXTREME(qx, <, lox);
+    LANES_EXTREME(qy, <, loy);
+    LANES_EXTREME(qz, <, loz);
+    LANES_EXTREME(qx, >, hix);
+    LANES_EXTREME(qy, >, hiy);
+    LANES_EXTREME(qz, >, hiz);
+    const float3 lo = (float3)(lox, loy, loz), hi = (float3)(hix, hiy, hiz);
+    const float3 q0 = 0.5f * (lo + hi);
+    const float3 span = DIFF(hi, q0);
+    const float rho = sqrt1(dot3(span, span)) * 1.000001f;
+    const int n = count - first < PACKET ? count - first : PACKET;
+    floatp w = (floatp)(0.0f);
+    int flag = 0;
+    int stack[STACK_SIZE];
+    ushort stack_bits[STACK_SIZE];
+    int top = 0, visits = 0;
+    uint act = (1u << n) - 1u;    /* the points that walk the record (not the spare lanes) */
+    __global const int *words = (__global const int *)nodes;
+    __global const floatw *rows = (__global const floatw *)moments;
+    if (node_is_leaf(root_y)) {     /* a root leaf: no records */
+        PACKET_LEAF(root, root - root_y, PACKET_MASK(act));
+    } else {
+        int record = root;
+        for (;;) {
+            if (visits++ < num_nodes) {
+                __global const floatw *m = rows + RECORD_ROWS * record;
+                const intp active = PACKET_MASK(act);
+                /* the lanes near the whole sphere: near every point, by its own test too */
+                const floatw rx = DIFF(m[0], (floatw)(q0.x)), ry = DIFF(m[1], (floatw)(q0.y)),
+                             rz = DIFF(m[2], (floatw)(q0.z));
+                const floatw d0 = SQRTW(rx * rx + ry * ry + rz * rz);
+                const floatw ub = d0 + (floatw)(rho) + d0 * (floatw)(1.0e-6f);
+                const floatw ub2 = ub * ub;
+                const uint near_all =
+                    lane_bits((ub2 <= (floatw)(beta2) * m[3]) |
+                              (ub2 * ub2 * ub < (floatw)(floor_scale) * m[FLOOR_ROW]));
+                __global const int *ref = words + 8 * WIDTH * record + 6 * WIDTH;
+                /* the lanes in their order, whatever the packet: a point's terms are
+                 * added in the same order as in a packet of its own */
+                for (uint bits = lane_bits(m[3] >= (floatw)(0.0f)); bits != 0u;
+                     bits &= bits - 1u) {
+                    const int c = lowest_lane(bits);
+                    __global const float *ml = (__global const float *)m + c;
+                    intp near = active;
+                    if (!((near_all >> c) & 1u)) {
+                        /* each point's own test (Barill et al. 2018), and the
+                         * expansion where it is far */
+                        const floatp px = DIFF((floatp)(ROW_L(0)), qx),
+                                     py = DIFF((floatp)(ROW_L(1)), qy),
+                                     pz = DIFF((floatp)(ROW_L(2)), qz);
+                        const floatp r2 = px * px + py * py + pz * pz;
+                        const floatp r1 = SQRTP(r2);
+                        const intp far = active & (r2 > (floatp)(beta2 * ROW_L(3))) &
+                                         (r2 * r2 * r1 >= (floatp)(floor_scale * ROW_L(FLOOR_ROW)));
+                        PACKET_BITS_OF(far, far_bits);
+                        if (far_bits != 0u) {
+                            FAR_TERM(floatp, ROW_L, px, py, pz, r2, r1, term);
+                            w += as_floatp(as_intp(term) & far);
+                            near = active & ~far;
+                        }
+                    }
+                    PACKET_BITS_OF(near, near_bits);
+                    if (near_bits == 0u) continue;
+                    const int x = ref[c], y = ref[WIDTH + c];
+                    if (node_is_leaf(y)) {
+                        PACKET_TRIANGLE(ROW_L(ROWS), ROW_L(ROWS + 1), ROW_L(ROWS + 2),
+                                        ROW_L(ROWS + 3), ROW_L(ROWS + 4), ROW_L(ROWS + 5),
+                                        ROW_L(ROWS + 6), ROW_L(ROWS + 7), ROW_L(ROWS + 8), near);
+                        PACKET_LEAF(x + 1, x - y, near);
+                    } else if (top < STACK_SIZE) {
+                        stack[top] = x;
+                        stack_bits[top++] = (ushort)near_bits;
+#if CLANG_PREFETCH && defined(__clang__)
+                        /* the record's test rows and references asked into the cache:
+                         * a pushed record is often the next one walked (1.1x on a 1M
+                         * terrain, bench/README.md) */
+                        __global const float *next = moments + RECORD_ROWS * WIDTH * x;
+                        __builtin_prefetch(next);
+                        __builtin_prefetch(next + 16);
+                        __builtin_prefetch(next + FLOOR_ROW * WIDTH);
+                        __builtin_prefetch(words + 8 * WIDTH * x + 6 * WIDTH);
+#endif
+                    } else {
+                        flag |= FLAG_OVERFLOW;
+                    }
+                }
+            }
+            if (top == 0) break;
+            --top;
+            record = stack[top];
+            act = stack_bits[top];
+        }
+    }
+    floatp_lanes out;
+    out.v = w * (floatp)(0.25f * M_1_PI_F);
+    for (int j = 0; j < n; ++j) {
+        const int i = point_index(order, first + j);
+        winding[i] = out.s[j];
+        flags[i] = flag;
+    }
+}
+#endif

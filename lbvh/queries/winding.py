@@ -42,8 +42,11 @@ bench/README.md). The walk goes through the tree's wide records where they
 are packed (the moments then per record), a record's
 lanes tested and expanded in one vector computation: on the 2-core Zen 3
 machine 3.8x, 1.6x and 4.0x as many points per second as the binary walk on
-the bunny, Sponza and a 1M-triangle terrain (bench/README.md). The twin is
-:func:`winding_numbers_numpy`, the exact float64 sum over every triangle.
+the bunny, Sponza and a 1M-triangle terrain (bench/README.md). On a CPU the
+points go through the records 16 at a time (:func:`use_packets`: nearby points,
+each with its own tests, the arithmetic 16 points wide), about 2x the points per
+second on Sponza, whose points sum many near triangles and expansions each. The
+twin is :func:`winding_numbers_numpy`, the exact float64 sum over every triangle.
 
 ``contains`` and the sign of ``signed_distance`` need only the side of 1/2: they
 walk every point at :data:`SIGN_BETA` and :data:`SIGN_NODE_ERROR` (cheaper, within
@@ -69,8 +72,9 @@ from .winding_moments import DEFAULT_ORDER, NODE_ERROR, ROWS_ORDER2, scale_of_bo
 
 KERNEL_FILE = "winding.cl"
 
-__all__ = ["DEFAULT_BETA", "DEFAULT_ORDER", "NODE_ERROR", "SIGN_BETA", "SIGN_NODE_ERROR",
-           "SIGN_FILTER_BOUND", "expansion_numpy", "winding_numbers", "inside", "contains",
+__all__ = ["DEFAULT_BETA", "DEFAULT_ORDER", "NODE_ERROR", "PACKET", "SIGN_BETA", "SIGN_NODE_ERROR",
+           "SIGN_FILTER_BOUND", "expansion_numpy", "use_packets", "winding_numbers", "inside",
+           "contains",
            "signed_distance", "winding_numbers_numpy"]
 
 #: The accuracy parameter of Barill et al. 2018: a node is expanded only where the point
@@ -134,12 +138,38 @@ def scaled_mode(scale: float, points_range: tuple[float, float] | None = None,
 def kernel_defines(ctx: dev.Context, scaled: int = 0) -> dict[str, int]:
     """kernels/winding.cl's choices: ``INLINE_SQRT`` where the compiler is clang's
     (kernels/common.h: its inline square root; 1.09x on Sponza's winding numbers,
-    bench/README.md); ``ORDER``, that of the moments the trees keep
-    (:data:`DEFAULT_ORDER`); ``SCALED`` (:func:`scaled_mode`)."""
+    bench/README.md), and ``CLANG_PREFETCH`` (the packet walk's prefetch of the
+    records it pushes; kernels/wide_rows.h); ``ORDER``, that of the moments the trees
+    keep (:data:`DEFAULT_ORDER`); ``SCALED`` (:func:`scaled_mode`)."""
     if scaled not in SCALED_MODES:
         raise ValueError(f"scaled: {scaled!r}; expected one of {SCALED_MODES}")
     return {"INLINE_SQRT": int(ctx.compiler_is_clang), "ORDER": DEFAULT_ORDER,
-            "SCALED": int(scaled)}
+            "SCALED": int(scaled), "CLANG_PREFETCH": int(ctx.compiler_is_clang)}
+
+
+#: Points a work-item of kernels/winding.cl's packet walk (``winding_packets``) answers.
+PACKET = 16
+#: The alignment in bits that the packet walk's whole-vector reads of a point buffer
+#: need (three ``float16``, 64 bytes, from a buffer's start plus ``192 k`` bytes).
+PACKET_ALIGN_BITS = 512
+
+
+def use_packets(ctx: dev.Context, defines: dict[str, int], packets: bool | None = None) -> bool:
+    """Whether :func:`winding_numbers` walks its points in packets of :data:`PACKET`
+    (kernels/winding.cl ``winding_packets``) rather than one a work-item: only through
+    wide records (``WIDE`` in the walk's ``defines``) on a device whose buffers start
+    :data:`PACKET_ALIGN_BITS`-aligned; then as ``packets`` says, by default (None) on
+    a CPU. The packets' points are put in their Morton order first (any batch of more
+    than one packet), so that a packet's points lie close together. On a CPU a
+    work-item is a loop iteration, and a packet's arithmetic is 16 points wide, where
+    the per-point walk's vectors are a record's lanes, many of them idle near the
+    surface: about 2x the points per second on Sponza, about the same on the bunny
+    and a 1M terrain (bench/README.md). A GPU gets one point a work-item. A point's
+    winding number is the same in any packet (and so in any batch), but not the same
+    float as the per-point walk's (within the same bound of the exact sum)."""
+    if not defines.get("WIDE") or ctx.device.mem_base_addr_align < PACKET_ALIGN_BITS:
+        return False
+    return bool(ctx.is_cpu) if packets is None else bool(packets)
 
 
 def _check_beta(beta: Any) -> np.float32:
@@ -165,7 +195,8 @@ def _check_node_error(node_error: Any) -> np.float32:
 
 @dev.serialised
 def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_BETA,
-                    node_error: float = NODE_ERROR, batch_size: int = 1 << 20) -> np.ndarray:
+                    node_error: float = NODE_ERROR, batch_size: int = 1 << 20,
+                    packets: bool | None = None) -> np.ndarray:
     """The generalised winding number of each point (see the module docstring).
 
     Args:
@@ -177,6 +208,9 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
             expansion's error, ``A / (4 pi r^2) (R / r)^3``, is at most this
             (:data:`lbvh.queries.winding_moments.NODE_ERROR` unless told).
         batch_size: points per kernel launch.
+        packets: walk the points 16 at a time (:func:`use_packets`; None, the default:
+            on a CPU, for batches large enough to sort). The sums differ from the
+            per-point walk's within the walk's error bound.
 
     Returns:
         ``float32 (N,)``.
@@ -189,6 +223,8 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
         raise ValueError("winding_numbers: this tree has spatial splits (builder='sbvh'), whose "
                          "nodes would count a split triangle more than once; build another tree "
                          "for inside tests and signed distance")
+    if packets is not None and not isinstance(packets, (bool, np.bool_)):
+        raise ValueError(f"packets: {packets!r}; expected None, True or False")
     p, least, largest = check_points_range(points)
     beta2 = _check_beta(beta)
     floor_scale = _check_node_error(node_error)
@@ -207,6 +243,7 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
     defines = {**defines, **kernel_defines(ctx, scaled_mode(scale, (least, largest), bounds))}
     moments = target.winding_moments()
     slot_faces = target.slot_faces()
+    packed = use_packets(ctx, defines, packets)
     batch = int(min(batch_size, n))
     bufs = {"points": mem.alloc(12 * batch, flags=cl.mem_flags.READ_ONLY),
             "w": mem.alloc(4 * batch), "flags": mem.alloc(4 * batch)}
@@ -216,12 +253,14 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
             stop = min(n, start + batch)
             m = stop - start
             ups = [cl.enqueue_copy(ctx.queue, bufs["points"], p[start:stop], is_blocking=False)]
-            if m >= MIN_POINTS:
+            if m >= MIN_POINTS or (packed and m > PACKET):
                 # nearby points one after another, read as one run (bench/README.md)
                 order, sorted_points, ups = ordered_points(ctx, bufs["points"], m,
                                                            *tree.root_box())
-            launch = dev.Launch(m, 1, -(-m // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
-            ev = dev.run(ctx, KERNEL_FILE, "winding_numbers", launch, records, moments,
+            items = -(-m // PACKET) if packed else m
+            launch = dev.Launch(items, 1, -(-items // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
+            ev = dev.run(ctx, KERNEL_FILE, "winding_packets" if packed else "winding_numbers",
+                         launch, records, moments,
                          target.mesh.vertices_buf, slot_faces, root, root_y, tree.num_nodes,
                          bufs["points"] if order is None else sorted_points,
                          order if order is not None else bufs["flags"], m, beta2,

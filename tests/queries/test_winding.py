@@ -128,8 +128,11 @@ def test_the_far_expansion_is_its_twins_and_of_the_second_order():
     assert all(e2 < e1 / 2 for e2, e1 in errors.values())
 
 
+@pytest.mark.parametrize("packets", [False, True])
 @pytest.mark.parametrize("name", ["cube_sphere", "icosphere", "box", "teapot", "soup"])
-def test_winding_numbers_within_the_bound_of_the_exact_sum(name):
+def test_winding_numbers_within_the_bound_of_the_exact_sum(name, packets):
+    """Both walks through the wide records, a point a work-item and 16 (packets, the
+    CPU's default), within WINDING_BOUND of the exact float64 sum."""
     if name == "teapot":
         v, f = shipped_mesh("teapot.obj")
     elif name == "soup":
@@ -139,14 +142,16 @@ def test_winding_numbers_within_the_bound_of_the_exact_sum(name):
     bvh = lbvh.build(v, f)
     p = box_points(v, 1500, 1)
     exact = winding_numbers_numpy(v, f, p)
-    w = bvh.winding_numbers(p)
+    w = winding.winding_numbers(bvh, p, packets=packets)
     assert w.dtype == np.float32 and w.shape == (len(p),)
     assert np.abs(w - exact).max() <= WINDING_BOUND
     # a larger beta expands fewer nodes: closer to the exact sum
-    assert np.abs(bvh.winding_numbers(p, beta=8) - exact).max() <= WINDING_BOUND / 10
+    assert np.abs(winding.winding_numbers(bvh, p, beta=8, packets=packets)
+                  - exact).max() <= WINDING_BOUND / 10
     # the same answer from another tree, within the bound
     other = lbvh.build(v, f, builder="sah")
-    assert np.abs(other.winding_numbers(p) - exact).max() <= WINDING_BOUND
+    assert np.abs(winding.winding_numbers(other, p, packets=packets)
+                  - exact).max() <= WINDING_BOUND
 
 
 @pytest.mark.parametrize("name", ["cube_sphere", "icosphere", "box", "teapot", "soup"])
@@ -335,13 +340,17 @@ def test_meshes_of_any_size(size):
         w = tree.winding_numbers(p)
         assert np.isfinite(w).all() and np.abs(w - exact).max() <= WINDING_BOUND
         assert np.array_equal(tree.contains(p), exact > 0.5)
+    # the wide records a point a work-item as well (the walk a GPU takes)
+    w = winding.winding_numbers(bvh, p, packets=False)
+    assert np.isfinite(w).all() and np.abs(w - exact).max() <= WINDING_BOUND
 
 
 HARD_CASES = [name for name in hard_cases.CASES if name != "over_2_24_triangles"]
 
 
+@pytest.mark.parametrize("packets", [False, True])
 @pytest.mark.parametrize("name", HARD_CASES)
-def test_hard_cases_within_the_bound(name):
+def test_hard_cases_within_the_bound(name, packets):
     """Every hard case of the ray queries (lbvh/verification/hard_cases.py: coordinates
     near 1e38 and the denormals, a mesh 1e7 from the origin, slivers, zero-area and
     identical triangles, deep chains...): the winding numbers of points in the box grown
@@ -354,7 +363,7 @@ def test_hard_cases_within_the_bound(name):
     rng = np.random.default_rng(1)
     p = np.clip(lo - 0.2 * (hi - lo) + rng.uniform(0, 1.4, (300, 3)) * (hi - lo),
                 -3e38, 3e38).astype(np.float32)
-    w = lbvh.build(v, f).winding_numbers(p)
+    w = winding.winding_numbers(lbvh.build(v, f), p, packets=packets)
     assert not np.isnan(w).any()
     away = closest_points_numpy(v, f, p)[0] > 1e-3 * float((hi - lo).max())
     assert np.abs(w - winding_numbers_numpy(v, f, p))[away].max(initial=0) <= WINDING_BOUND
@@ -415,8 +424,15 @@ def test_points_far_from_the_mesh():
     bvh = lbvh.build(v, f)
     for far in (1e3, 1e8, 1e13, 1e18, 1e30):
         p = np.float32([[far, 0, 0], [0, -far, far], [0.1, 0.2, 0.3]])
-        w = bvh.winding_numbers(p)
-        assert np.abs(w[:2]).max() < 1e-6 and abs(w[2] - 1) <= WINDING_BOUND
+        for packets in (False, True):
+            w = winding.winding_numbers(bvh, p, packets=packets)
+            assert np.abs(w[:2]).max() < 1e-6 and abs(w[2] - 1) <= WINDING_BOUND
+        # a whole packet of points, near and far, in one (their sphere spans 1e30)
+        pk = np.float32(np.resize(p, (winding.PACKET, 3)) * np.arange(1, winding.PACKET + 1)[:, None])
+        alone = np.concatenate([winding.winding_numbers(bvh, pk[i:i + 1], packets=True)
+                                for i in range(len(pk))])
+        together = winding.winding_numbers(bvh, pk, packets=True)
+        assert np.array_equal(alone.view(np.uint32), together.view(np.uint32))
     box = bvh.mesh.bounds
     assert np.array_equal(box[0], v.min(0)) and np.array_equal(box[1], v.max(0))
     assert winding.scaled_mode(1.0, (float(p[:2].min()), float(p[:2].max())), box) == 1
@@ -454,16 +470,22 @@ __kernel void atan2_of(__global const float *y, __global const float *x, __globa
 """
 
 
-LANES_TEST = """
-__kernel void lanes_of(__global const float *y, __global const float *x,
-                       __global const float *q, __global const float *corners,
-                       __global float *angle, __global float *angle_lanes,
-                       __global float *solid, __global float *solid_lanes) {
+# the test kernels' arguments: angles (y, x), points, corners; out: the scalar
+# functions' and the vector ones' angles and solid angles
+_LANES_ARGS = """(__global const float *y, __global const float *x, __global const float *q,
+    __global const float *corners, __global float *angle, __global float *angle_lanes,
+    __global float *solid, __global float *solid_lanes)"""
+
+LANES_TEST = "__kernel void lanes_of" + _LANES_ARGS + """ {
     const int i = get_global_id(0);
     const floatw a = atan2_polyw(((__global const floatw *)y)[i], ((__global const floatw *)x)[i]);
     const float3 p = load_float3(q, i);
     __global const floatw *c = (__global const floatw *)corners + 9 * i;
-    const floatw sa = solid_angles(p, c, 1.0f);
+    const floatw px = (floatw)(p.x), py = (floatw)(p.y), pz = (floatw)(p.z);
+    const floatw ax = DIFF(c[0], px), ay = DIFF(c[1], py), az = DIFF(c[2], pz);
+    const floatw bx = DIFF(c[3], px), by = DIFF(c[4], py), bz = DIFF(c[5], pz);
+    const floatw cx = DIFF(c[6], px), cy = DIFF(c[7], py), cz = DIFF(c[8], pz);
+    SOLID_ANGLES(floatw, intw, as_floatw, as_intw, SQRTW, ax, ay, az, bx, by, bz, cx, cy, cz, sa);
     for (int k = 0; k < WIDTH; ++k) {
         const int j = WIDTH * i + k;
         angle[j] = atan2_poly(y[j], x[j]);
@@ -478,45 +500,116 @@ __kernel void lanes_of(__global const float *y, __global const float *x,
 """
 
 
+PACKET_TEST = "__kernel void packets_of" + _LANES_ARGS + """ {
+    const int i = get_global_id(0);
+    floatp_lanes ys, xs, sx, sy, sz;
+    for (int k = 0; k < PACKET; ++k) {
+        ys.s[k] = y[PACKET * i + k];
+        xs.s[k] = x[PACKET * i + k];
+        sx.s[k] = q[3 * (PACKET * i + k)];
+        sy.s[k] = q[3 * (PACKET * i + k) + 1];
+        sz.s[k] = q[3 * (PACKET * i + k) + 2];
+    }
+    floatp_lanes a;
+    ATAN2_LANES(floatp, intp, as_floatp, as_intp, ys.v, xs.v, angles);
+    a.v = angles;
+    const float scale = 1.0f;
+    const floatp qx = sx.v, qy = sy.v, qz = sz.v;
+    __global const float *t = corners + 9 * i;
+    floatp w = (floatp)(-0.0f);     /* -0 + x is x, bit for bit */
+    PACKET_TRIANGLE(t[0], t[1], t[2], t[3], t[4], t[5], t[6], t[7], t[8], (intp)(-1));
+    floatp_lanes sa;
+    sa.v = w;
+    for (int k = 0; k < PACKET; ++k) {
+        const int j = PACKET * i + k;
+        angle[j] = atan2_poly(y[j], x[j]);
+        angle_lanes[j] = a.s[k];
+        solid[j] = solid_angle(load_float3(q, j), (float3)(t[0], t[1], t[2]),
+                               (float3)(t[3], t[4], t[5]), (float3)(t[6], t[7], t[8]), 1.0f);
+        solid_lanes[j] = sa.s[k];
+    }
+}
+"""
+
+
+def _angles_and_triangles(rng, n, lanes):
+    """Angles of every octant with the signed zeros and NaN, ``(y, x)`` float32 (n * lanes,),
+    and points with triangles near and far of them, the point at a corner and on the
+    plane: ``q (n, 3)``, ``tri (n, lanes, 3, 3)`` float32."""
+    y = np.concatenate([rng.normal(size=n * lanes - 12),
+                        [0.0, -0.0, 0.0, -0.0, 1.0, -1.0, 0.0, 1.0, np.nan, 1.0, 3.0, -3.0]])
+    x = np.concatenate([rng.normal(size=n * lanes - 12),
+                        [1.0, 1.0, -1.0, -1.0, 0.0, 0.0, -0.0, -0.0, 1.0, np.nan, 3.0, -3.0]])
+    q = rng.normal(size=(n, 3)).astype(np.float32)
+    tri = (q[:, None, None, :] + rng.normal(size=(n, lanes, 3, 3))
+           * 10.0 ** rng.uniform(-3, 1, (n, lanes, 1, 1))).astype(np.float32)
+    tri[0, 0, 0] = q[0]                              # the point at a corner
+    tri[1, 0, :, 2] = q[1, 2]                        # the point on the triangle's plane
+    return y.astype(np.float32), x.astype(np.float32), q, tri
+
+
+def _exact_solid_angles(tri, q):
+    """float64 solid angles of ``tri (..., 3, 3)`` at ``q (..., 3)`` (the twin's formula)."""
+    a, b, c = (tri[..., k, :].astype(np.float64) - q.astype(np.float64) for k in range(3))
+    la, lb, lc = (np.linalg.norm(e, axis=-1) for e in (a, b, c))
+    return 2 * np.arctan2((a * np.cross(b, c)).sum(-1),
+                          la * lb * lc + (a * b).sum(-1) * lc + (a * c).sum(-1) * lb
+                          + (b * c).sum(-1) * la)
+
+
+def _run_lanes(ctx, source, name, options, n, items, *arrays):
+    prog = cl.Program(ctx.ctx, dev.kernel_source("winding.cl") + source).build(options=options)
+    mf = cl.mem_flags
+    ins = [cl.Buffer(ctx.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(a))
+           for a in arrays]
+    outs = [np.empty(items, np.float32) for _ in range(4)]
+    bufs = [cl.Buffer(ctx.ctx, mf.WRITE_ONLY, o.nbytes) for o in outs]
+    getattr(prog, name)(ctx.queue, (n,), None, *ins, *bufs)
+    for o, b in zip(outs, bufs):
+        cl.enqueue_copy(ctx.queue, o, b, is_blocking=True)
+    return outs
+
+
+def test_the_packets_solid_angles_are_the_scalar_ones(ctx):
+    """ATAN2_LANES and PACKET_TRIANGLE (the packet walk's exact sums, one triangle at 16
+    points) give, point by point, the bits of atan2_poly and solid_angle: the same
+    operations, on the cases of the lanes' test below."""
+    rng = np.random.default_rng(13)
+    n, lanes = 2048, winding.PACKET
+    y, x, q, tri = _angles_and_triangles(rng, n, 1)
+    y, x = (np.resize(a, n * lanes) for a in (y, x))
+    points = (tri[:, 0, 0][:, None, :] + rng.normal(size=(n, lanes, 3))
+              * 10.0 ** rng.uniform(-3, 1, (n, lanes, 1))).astype(np.float32)
+    points[0, 0] = tri[0, 0, 0]                     # at a corner
+    points[1, 1, 2] = tri[1, 0, 0, 2]               # z on the plane of the corner
+    angle, angle_lanes, solid, solid_lanes = _run_lanes(
+        ctx, PACKET_TEST, "packets_of", ["-D", "WIDE=1", "-D", "WIDTH=8"], n, n * lanes, y, x,
+        points.reshape(-1, 3), tri[:, 0].reshape(n, 9))
+    assert np.array_equal(angle.view(np.uint32), angle_lanes.view(np.uint32))
+    assert np.array_equal(solid.view(np.uint32), solid_lanes.view(np.uint32))
+    exact = _exact_solid_angles(np.repeat(tri[:, 0], lanes, axis=0), points.reshape(-1, 3))
+    assert np.abs(solid - exact).max() <= 2e-4
+
+
 @pytest.mark.parametrize("width", [4, 8])
 def test_the_lane_by_lane_solid_angles_are_the_scalar_ones(ctx, width):
-    """atan2_polyw and solid_angles (the wide walk's near leaves, from a record's corner
+    """atan2_polyw and SOLID_ANGLES (the wide walk's near leaves, from a record's corner
     rows) give, lane by lane, the bits of atan2_poly and solid_angle: the same
     operations; on angles of every octant, the signed zeros and NaN, and on triangles
     seen from points near and far, on their planes and at their corners."""
     rng = np.random.default_rng(12)
     n = 4096
-    y = np.concatenate([rng.normal(size=n * width - 12),
-                        [0.0, -0.0, 0.0, -0.0, 1.0, -1.0, 0.0, 1.0, np.nan, 1.0, 3.0, -3.0]])
-    x = np.concatenate([rng.normal(size=n * width - 12),
-                        [1.0, 1.0, -1.0, -1.0, 0.0, 0.0, -0.0, -0.0, 1.0, np.nan, 3.0, -3.0]])
-    y, x = y.astype(np.float32), x.astype(np.float32)
-    q = rng.normal(size=(n, 3)).astype(np.float32)
-    tri = (q[:, None, None, :] + rng.normal(size=(n, width, 3, 3))
-           * 10.0 ** rng.uniform(-3, 1, (n, width, 1, 1))).astype(np.float32)
-    tri[0, 0, 0] = q[0]                              # the point at a corner
-    tri[1, 0, :, 2] = q[1, 2]                        # the point on the triangle's plane
+    y, x, q, tri = _angles_and_triangles(rng, n, width)
     corners = np.ascontiguousarray(tri.reshape(n, width, 9).transpose(0, 2, 1))
-    prog = cl.Program(ctx.ctx, dev.kernel_source("winding.cl") + LANES_TEST).build(
-        options=["-D", "WIDE=1", "-D", f"WIDTH={width}"])
-    mf = cl.mem_flags
-    ins = [cl.Buffer(ctx.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=a) for a in (y, x, q, corners)]
-    outs = [np.empty(n * width, np.float32) for _ in range(4)]
-    bufs = [cl.Buffer(ctx.ctx, mf.WRITE_ONLY, o.nbytes) for o in outs]
-    prog.lanes_of(ctx.queue, (n,), None, *ins, *bufs)
-    for o, b in zip(outs, bufs):
-        cl.enqueue_copy(ctx.queue, o, b, is_blocking=True)
-    angle, angle_lanes, solid, solid_lanes = outs
+    angle, angle_lanes, solid, solid_lanes = _run_lanes(
+        ctx, LANES_TEST, "lanes_of", ["-D", "WIDE=1", "-D", f"WIDTH={width}"], n, n * width,
+        y, x, q, corners)
     assert np.array_equal(angle.view(np.uint32), angle_lanes.view(np.uint32))
     assert np.array_equal(solid.view(np.uint32), solid_lanes.view(np.uint32))
     # and both near the float64 solid angle of each triangle (the twin's formula), within
     # float32's rounding of the corners' differences (measured 7e-5 here, the worst on
     # points close to their triangles; the tests of the sums hold WINDING_BOUND)
-    a, b, c = (tri[:, :, k].astype(np.float64) - q[:, None, :] for k in range(3))
-    la, lb, lc = (np.linalg.norm(e, axis=-1) for e in (a, b, c))
-    exact = 2 * np.arctan2((a * np.cross(b, c)).sum(-1),
-                           la * lb * lc + (a * b).sum(-1) * lc + (a * c).sum(-1) * lb
-                           + (b * c).sum(-1) * la)
+    exact = _exact_solid_angles(tri, q[:, None, :])
     assert np.abs(solid - exact.reshape(-1)).max() <= 2e-4
 
 
@@ -678,6 +771,9 @@ def test_bad_points_and_options():
     for beta in (0.5, float("nan"), "x"):
         with pytest.raises(ValueError, match="beta"):
             bvh.contains(p[:3], beta=beta)
+    for packets in (1, "yes", 0.0):
+        with pytest.raises(ValueError, match="packets"):
+            winding.winding_numbers(bvh, p[:3], packets=packets)
     assert bvh.winding_numbers(np.zeros((0, 3))).shape == (0,)
 
 
@@ -691,11 +787,46 @@ def test_points_in_morton_order_give_the_same_winding_numbers(monkeypatch):
     bvh = lbvh.build(v, f)
     binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
     assert not binary.wide_records(max_bytes=0).packed
-    plain = [bvh.winding_numbers(p), binary.winding_numbers(p)]
+    plain = [winding.winding_numbers(bvh, p, packets=False), binary.winding_numbers(p)]
     monkeypatch.setattr(winding_module, "MIN_POINTS", 1000)
-    ordered = [bvh.winding_numbers(p), binary.winding_numbers(p)]
+    ordered = [winding.winding_numbers(bvh, p, packets=False), binary.winding_numbers(p)]
     for a, b in zip(plain, ordered):
         assert np.array_equal(a.view(np.uint32), b.view(np.uint32))
     # and in batches, some above the threshold and some below
-    batched = winding_module.winding_numbers(bvh, p, batch_size=1300)
+    batched = winding_module.winding_numbers(bvh, p, batch_size=1300, packets=False)
     assert np.array_equal(batched.view(np.uint32), plain[0].view(np.uint32))
+
+
+def test_a_points_winding_number_is_the_same_in_any_packet():
+    """The packet walk (16 points a work-item, kernels/winding.cl winding_packets)
+    tests each point as its own walk would and adds its terms in the lanes' order,
+    whatever the other points of its packet: a point's number is the same float alone,
+    in any batch, in any order, in a last partial packet; within the bound of the
+    exact sum, as the per-point walk's (which adds them in another order)."""
+    v, f = shipped_mesh("teapot.obj")
+    p = box_points(v, 3001, 4)                   # 187 packets and 9 points
+    bvh = lbvh.build(v, f)
+    assert winding.use_packets(bvh.ctx, winding.walk_of(bvh)[1]) == bvh.ctx.is_cpu
+    whole = winding.winding_numbers(bvh, p, packets=True)
+    bits = whole.view(np.uint32)
+    shuffled = np.random.default_rng(5).permutation(len(p))
+    assert np.array_equal(winding.winding_numbers(bvh, p[shuffled], packets=True)
+                          .view(np.uint32), bits[shuffled])
+    batched = winding.winding_numbers(bvh, p, batch_size=700, packets=True)
+    assert np.array_equal(batched.view(np.uint32), bits)
+    for k in (1, 5, 16, 17, 40):                 # a packet and less, and more
+        some = np.flatnonzero(np.random.default_rng(k).random(len(p)) < k / len(p))[:k]
+        some = some if len(some) else np.arange(k)
+        assert np.array_equal(winding.winding_numbers(bvh, p[some], packets=True)
+                              .view(np.uint32), bits[some])
+    exact = winding_numbers_numpy(v, f, p)
+    per_point = winding.winding_numbers(bvh, p, packets=False)
+    assert np.abs(whole - exact).max() <= WINDING_BOUND
+    assert np.abs(whole - per_point).max() <= 1e-5   # the same nodes, another order
+    # the filter's first walk too (contains and the sign of signed distance)
+    first = winding.winding_numbers(bvh, p, beta=winding.SIGN_BETA,
+                                    node_error=winding.SIGN_NODE_ERROR, packets=True)
+    assert np.array_equal(winding.winding_numbers(bvh, p[shuffled], beta=winding.SIGN_BETA,
+                                                  node_error=winding.SIGN_NODE_ERROR,
+                                                  packets=True).view(np.uint32),
+                          first.view(np.uint32)[shuffled])
