@@ -294,7 +294,8 @@ typedef union { floatp v; float s[PACKET]; } floatp_lanes;
                __builtin_sqrtf((v).sc), __builtin_sqrtf((v).sd), __builtin_sqrtf((v).se),    \
                __builtin_sqrtf((v).sf)))
 #else
-#define SQRTP sqrt
+/* by halves: common.h's sqrt8 (the OpenCL builtin there) takes 32 bytes, not 64 */
+#define SQRTP(v) ((float16)(sqrt8((v).lo), sqrt8((v).hi)))
 #endif
 #define as_floatp as_float16
 #define as_intp as_int16

@@ -74,8 +74,7 @@ KERNEL_FILE = "winding.cl"
 
 __all__ = ["DEFAULT_BETA", "DEFAULT_ORDER", "NODE_ERROR", "PACKET", "SIGN_BETA", "SIGN_NODE_ERROR",
            "SIGN_FILTER_BOUND", "expansion_numpy", "use_packets", "winding_numbers", "inside",
-           "contains",
-           "signed_distance", "winding_numbers_numpy"]
+           "contains", "signed_distance", "winding_numbers_numpy"]
 
 #: The accuracy parameter of Barill et al. 2018: a node is expanded only where the point
 #: lies farther than beta times its radius (with the second-order expansion; the
@@ -209,8 +208,8 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
             (:data:`lbvh.queries.winding_moments.NODE_ERROR` unless told).
         batch_size: points per kernel launch.
         packets: walk the points 16 at a time (:func:`use_packets`; None, the default:
-            on a CPU, for batches large enough to sort). The sums differ from the
-            per-point walk's within the walk's error bound.
+            on a CPU). The sums differ from the per-point walk's within the walk's error
+            bound.
 
     Returns:
         ``float32 (N,)``.
