@@ -22,9 +22,9 @@
  * is opened where its expansion would be poor.
  *
  * Moments, ROWS floats per node (winding_moments.cl makes them):
- *   [0..2] p, [3] R^2, [4..6] N, [7..15] M row by row (M[j][k] = m[7 + 3j + k]),
- *   with ORDER=2 also [16..18] g and [19..36] K (FAR_TERM); last
- *   ([ROWS - 1]) the far floor A R^3 / (4 pi e).
+ *   [0..2] p, [3] R^2, [4..6] N, [7] tr M, [8..13] -3 M's symmetric pairs, with
+ *   ORDER=2 also [14..16] g and [17..26] the cubic's coefficients (FAR_TERM);
+ *   last ([ROWS - 1]) the far floor A R^3 / (4 pi e).
  * beta2 is beta^2; floor_scale multiplies the floor, NODE_ERROR over the
  * pass's own error target per node (1 for the node error the moments were
  * made for; less for a coarser pass, lbvh/queries/winding.py node_error).
@@ -55,7 +55,7 @@
  *                 `points` holds at k (ray_order.cl, gather_points); the
  *                 answers stay in the points' own slots.
  *   ORDER=2|1     the order of the far nodes' expansion (the moments' rows:
- *                 37 or 16); 2 unless told.
+ *                 28 or 15); 2 unless told.
  *   WIDE=1        walk the wide records (`nodes` is then the records, the root
  *                 their reference (root, root_y)); WIDTH=4 or 8 lanes.
  *   CLANG_PREFETCH=1  winding_packets asks a record it pushes into the cache
@@ -87,9 +87,9 @@
 #define ORDER 2
 #endif
 #if ORDER == 2
-#define ROWS 38
+#define ROWS 28
 #else
-#define ROWS 17
+#define ROWS 15
 #endif
 #define CORNER_ROWS 9
 #define RECORD_ROWS (ROWS + CORNER_ROWS)
@@ -157,10 +157,12 @@ inline float solid_angle(float3 q, float3 p0, float3 p1, float3 p2, float scale)
 /* A far node's expansion (Barill et al. 2018, section 3.2) at r = p - q, with
  * its terms grouped by the power of |r| they are divided by:
  *   inv3 (N.r + tr M + inv2 (g.r - 3 r^T M r + inv2 C(r))),
- * inv3 = 1/|r|^3, inv2 = 1/|r|^2, C(r) = sum_i r_i (K_i . rr), the second
- * order's cubic (rr = (x^2, y^2, z^2, xy, xz, yz), m[16..18] = g, m[19 + 6 i ..]
- * = K_i: winding_moments.py node_moments), summed by its 10 monomials, and
- * r^T M r by its 6. M(j) is row j of the node's moments (a float, or a vector
+ * inv3 = 1/|r|^3, inv2 = 1/|r|^2, -3 r^T M r by its 6 monomials (m[8..13]) and
+ * C(r), the second order's cubic, by its 10 (m[17..26]; m[14..16] = g): each
+ * coefficient one row of the moments, ready to multiply (winding_moments.py
+ * node_moments; summed there in float64, where the terms of one monomial were
+ * added up here for every point: 1.1x on Sponza's inside tests,
+ * bench/README.md). M(j) is row j of the node's moments (a float, or a vector
  * of lanes); r's components, r2 = |r|^2, r1 = |r| (the far test's) and the
  * result are of type T (float or a vector of points or lanes). One grouping
  * for every walk, with fewer operations than the terms one by one. */
@@ -171,20 +173,18 @@ inline float solid_angle(float3 q, float3 p0, float3 p1, float3 p2, float scale)
         const T inv3_ = (T)(1.0f) / ((r2) * (r1));                                         \
         const T inv2_ = inv3_ * (r1);                                                      \
         const T xy_ = (x) * (y), xz_ = (x) * (z), yz_ = (y) * (z);                         \
-        const T quad_ = -3.0f * (M(7) * xx_ + M(11) * yy_ + M(15) * zz_ +                  \
-                                 (M(8) + M(10)) * xy_ + (M(9) + M(13)) * xz_ +             \
-                                 (M(12) + M(14)) * yz_);                                   \
-        out = inv3_ * (M(4) * (x) + M(5) * (y) + M(6) * (z) + (M(7) + M(11) + M(15)) +      \
+        const T quad_ = M(8) * xx_ + M(9) * yy_ + M(10) * zz_ + M(11) * xy_ + M(12) * xz_ +  \
+                        M(13) * yz_;                                                       \
+        out = inv3_ * (M(4) * (x) + M(5) * (y) + M(6) * (z) + M(7) +                       \
                        inv2_ * (quad_ + SECOND_TERM(M, x, y, z, xx_, yy_, zz_, xy_, inv2_))); \
     } while (0)
 #if ORDER == 2
 #define SECOND_TERM(M, x, y, z, xx, yy, zz, xy, inv2)                                      \
-    (M(16) * (x) + M(17) * (y) + M(18) * (z) +                                             \
-     (inv2) * (M(19) * (xx) * (x) + M(26) * (yy) * (y) + M(33) * (zz) * (z) +              \
-               (M(22) + M(25)) * (xx) * (y) + (M(23) + M(31)) * (xx) * (z) +               \
-               (M(20) + M(28)) * (yy) * (x) + (M(30) + M(32)) * (yy) * (z) +               \
-               (M(21) + M(35)) * (zz) * (x) + (M(27) + M(36)) * (zz) * (y) +               \
-               (M(24) + M(29) + M(34)) * (xy) * (z)))
+    (M(14) * (x) + M(15) * (y) + M(16) * (z) +                                             \
+     (inv2) * (M(17) * (xx) * (x) + M(18) * (yy) * (y) + M(19) * (zz) * (z) +              \
+               M(20) * (xx) * (y) + M(21) * (xx) * (z) + M(22) * (yy) * (x) +              \
+               M(23) * (yy) * (z) + M(24) * (zz) * (x) + M(25) * (zz) * (y) +              \
+               M(26) * (xy) * (z)))
 #else
 #define SECOND_TERM(M, x, y, z, xx, yy, zz, xy, inv2) 0.0f
 #endif

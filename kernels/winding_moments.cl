@@ -21,10 +21,11 @@
  *   i = x, y, z within each pair jk of (xx, yy, zz, xy, xz, yz),
  *   Q = (sum_v v v^T + 9 c c^T) / 12, the mean of x x^T over the triangle.
  * As soon as a node's sums are known its ROWS floats are written from them
- * and its box: the centre p, R^2, N, M = B - N p^T, and with ORDER=2
- * H_ijk = sum a_i Q_jk - B_ij p_k - B_ik p_j + N_i p_j p_k contracted as
- * winding.cl reads it (g = -3/2 (2 u + t), u_k = H_iik, t_i = H_ijj; then
- * 15/2 H_ijk, the off-diagonal pairs doubled), and last the far floor
+ * and its box, each a coefficient of winding.cl's FAR_TERM: the centre p, R^2,
+ * N, of M = B - N p^T its trace and -3 times its symmetric pairs (M_jj,
+ * M_jk + M_kj), and with ORDER=2 H_ijk = sum a_i Q_jk - B_ij p_k - B_ik p_j +
+ * N_i p_j p_k contracted (g = -3/2 (2 u + t), u_k = H_iik, t_i = H_ijj; then the
+ * cubic 15/2 H_ijk r_i r_j r_k by its ten monomials), and last the far floor
  * A R^3 / far_divisor, A the node's triangle area (winding.cl: a node is far
  * only where r^5 is at least that; far_divisor = 4 pi times the error allowed
  * per node, winding_moments.py NODE_ERROR).
@@ -50,10 +51,10 @@
 #endif
 #if ORDER == 2
 #define TERMS 34
-#define ROWS 38
+#define ROWS 28
 #elif ORDER == 1
 #define TERMS 16
-#define ROWS 17
+#define ROWS 15
 #else
 #error "ORDER must be 1 or 2"
 #endif
@@ -69,6 +70,11 @@
 /* Pair m of the symmetric second moments: (xx, yy, zz, xy, xz, yz). */
 __constant int PAIR_J[6] = {0, 1, 2, 0, 0, 1};
 __constant int PAIR_K[6] = {0, 1, 2, 1, 2, 2};
+/* The cubic's monomials r_a r_b r_c, a <= b <= c (winding_moments.py CUBIC_MONOMIALS):
+ * xxx, yyy, zzz, xxy, xxz, xyy, yyz, xzz, yzz, xyz. */
+__constant int CUBE_A[10] = {0, 1, 2, 0, 0, 0, 1, 0, 1, 0};
+__constant int CUBE_B[10] = {0, 1, 2, 0, 0, 1, 1, 2, 2, 1};
+__constant int CUBE_C[10] = {0, 1, 2, 1, 2, 1, 2, 2, 2, 2};
 
 /* Vertex v in double, less the shift, times the scale (a power of two). */
 inline void corner(__global const float *vertices, uint v, const double *shift, double scale,
@@ -157,10 +163,15 @@ inline void write_rows(__global const float *nodes, int node, const double *s,
     for (int j = 0; j < 3; ++j) o[j * stride] = (float)(p[j] / scale + shift[j]);
     o[3 * stride] = (float)r2;
     o[(ROWS - 1) * stride] = (float)(area * r2 * sqrt(r2) / far_divisor);
+    double m[3][3];   /* M = B - N p^T */
     for (int i = 0; i < 3; ++i) {
         o[(4 + i) * stride] = (float)s[4 + i];
-        for (int j = 0; j < 3; ++j)
-            o[(7 + 3 * i + j) * stride] = (float)(s[7 + 3 * i + j] - s[4 + i] * p[j]);
+        for (int j = 0; j < 3; ++j) m[i][j] = s[7 + 3 * i + j] - s[4 + i] * p[j];
+    }
+    o[7 * stride] = (float)((m[0][0] + m[1][1]) + m[2][2]);
+    for (int q = 0; q < 6; ++q) {
+        const int j = PAIR_J[q], k = PAIR_K[q];
+        o[(8 + q) * stride] = (float)(-3.0 * (j == k ? m[j][j] : m[j][k] + m[k][j]));
     }
 #if ORDER == 2
     for (int k = 0; k < 3; ++k) {
@@ -169,11 +180,21 @@ inline void write_rows(__global const float *nodes, int node, const double *s,
             u = u + h_of(s, p, pair_of(i, k), i);
             t = t + h_of(s, p, i, k);
         }
-        o[(16 + k) * stride] = (float)(-1.5 * (2.0 * u + t));
+        o[(14 + k) * stride] = (float)(-1.5 * (2.0 * u + t));
     }
-    for (int i = 0; i < 3; ++i)
-        for (int m = 0; m < 6; ++m)
-            o[(19 + 6 * i + m) * stride] = (float)((m < 3 ? 7.5 : 15.0) * h_of(s, p, m, i));
+    /* the cubic's coefficient of each monomial r_a r_b r_c: over each distinct factor
+     * i of it, 15/2 H_ijk (jk the other two), doubled where j != k */
+    for (int c = 0; c < 10; ++c) {
+        const int f[3] = {CUBE_A[c], CUBE_B[c], CUBE_C[c]};
+        double coefficient = 0.0;
+        for (int n = 0; n < 3; ++n) {
+            if ((n > 0 && f[n] == f[0]) || (n > 1 && f[n] == f[1])) continue;
+            const int j = f[n == 0 ? 1 : 0], k = f[n == 2 ? 1 : 2];
+            const double term = (j == k ? 7.5 : 15.0) * h_of(s, p, pair_of(j, k), f[n]);
+            coefficient = n == 0 ? term : coefficient + term;
+        }
+        o[(17 + c) * stride] = (float)coefficient;
+    }
 #endif
 }
 

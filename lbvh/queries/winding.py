@@ -68,7 +68,8 @@ from .. import device as dev
 from .closest import check_points, check_points_range, closest_points, walk_of
 from .ray_order import MIN_POINTS, ordered_points
 from .target import QueryTarget
-from .winding_moments import DEFAULT_ORDER, NODE_ERROR, ROWS_ORDER2, scale_of_box
+from .winding_moments import (CUBIC_MONOMIALS, DEFAULT_ORDER, NODE_ERROR, ROWS_ORDER2,
+                              scale_of_box)
 
 KERNEL_FILE = "winding.cl"
 
@@ -335,7 +336,7 @@ def winding_numbers_numpy(vertices: np.ndarray, faces: np.ndarray, points: np.nd
 
 def expansion_numpy(moments: np.ndarray, points: np.ndarray) -> np.ndarray:
     """The twin of kernels/winding.cl's far-node term: ``float64 (K, N)``, the winding
-    number that the expansion of each node of ``moments`` (``(K, 17)`` or ``(K, 38)``
+    number that the expansion of each node of ``moments`` (``(K, 28)`` or ``(K, 15)``
     rows of :func:`lbvh.queries.winding_moments.node_moments`, its order read from the
     row length) gives at each point, ``(N, 3)``; in float64 from the float32 moments."""
     m = np.asarray(moments, np.float64)
@@ -344,13 +345,13 @@ def expansion_numpy(moments: np.ndarray, points: np.ndarray) -> np.ndarray:
     inv = 1.0 / np.sqrt(x * x + y * y + z * z)
     inv3 = inv ** 3
     col = [m[:, k, None] for k in range(m.shape[1])]
-    mr = [col[7 + 3 * i] * x + col[8 + 3 * i] * y + col[9 + 3 * i] * z for i in range(3)]
-    w = ((col[4] * x + col[5] * y + col[6] * z) * inv3 + (col[7] + col[11] + col[15]) * inv3
-         - 3.0 * (x * mr[0] + y * mr[1] + z * mr[2]) * inv3 * inv * inv)
+    pairs = (x * x, y * y, z * z, x * y, x * z, y * z)
+    quad = sum(col[8 + q] * pairs[q] for q in range(6))          # -3 r^T M r
+    w = (col[4] * x + col[5] * y + col[6] * z + col[7]) * inv3 + quad * inv3 * inv * inv
     if m.shape[1] == ROWS_ORDER2:
-        rr = (x * x, y * y, z * z, x * y, x * z, y * z)
-        cubic = sum(c * sum(col[19 + 6 * i + k] * rr[k] for k in range(6))
-                    for i, c in enumerate((x, y, z)))
-        w = w + (col[16] * x + col[17] * y + col[18] * z) * inv3 * inv * inv \
+        axes = (x, y, z)
+        cubic = sum(col[17 + c] * axes[a] * axes[b] * axes[d]
+                    for c, (a, b, d) in enumerate(CUBIC_MONOMIALS))
+        w = w + (col[14] * x + col[15] * y + col[16] * z) * inv3 * inv * inv \
             + cubic * inv3 * inv ** 4
     return w / (4.0 * np.pi)

@@ -39,14 +39,14 @@ from .wide import Wide
 
 KERNEL_FILE = "winding_moments.cl"
 
-__all__ = ["DEFAULT_ORDER", "ROWS_ORDER1", "ROWS_ORDER2", "CORNER_ROWS", "NODE_ERROR",
-           "node_moments", "wide_moments", "lane_corners", "read_lanes", "make_moments",
+__all__ = ["DEFAULT_ORDER", "ROWS_ORDER1", "ROWS_ORDER2", "CORNER_ROWS", "CUBIC_MONOMIALS",
+           "NODE_ERROR", "node_moments", "wide_moments", "lane_corners", "read_lanes", "make_moments",
            "device_can_make", "kernel_defines", "winding_scale", "scale_of_box"]
 
 #: Floats per node of the first-order moments (:func:`node_moments` with ``order=1``).
-ROWS_ORDER1 = 17
+ROWS_ORDER1 = 15
 #: Floats per node with the second-order terms (``order=2``, the default).
-ROWS_ORDER2 = 38
+ROWS_ORDER2 = 28
 #: Rows a wide record holds after its lanes' moments: the corners of each leaf lane's
 #: first triangle (:func:`lane_corners`).
 CORNER_ROWS = 9
@@ -70,6 +70,11 @@ DEFAULT_ORDER = 2
 
 # the six pairs (j, k), j <= k, of the symmetric second moments, in the kernel's order
 _PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+#: The ten monomials ``r_a r_b r_c`` (axes a <= b <= c) of the second order's cubic, in
+#: the order of their coefficients' rows (:func:`node_moments`): xxx, yyy, zzz, xxy,
+#: xxz, xyy, yyz, xzz, yzz, xyz.
+CUBIC_MONOMIALS = ((0, 0, 0), (1, 1, 1), (2, 2, 2), (0, 0, 1), (0, 0, 2), (0, 1, 1),
+                   (1, 1, 2), (0, 2, 2), (1, 2, 2), (0, 1, 2))
 
 
 def _triangle_terms(vertices: np.ndarray, faces: np.ndarray, order: int = 1) -> np.ndarray:
@@ -154,22 +159,26 @@ def scale_of_box(lower: np.ndarray, upper: np.ndarray) -> float:
 def node_moments(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices: np.ndarray,
                  faces: np.ndarray, order: int = DEFAULT_ORDER,
                  scale: float | None = None) -> np.ndarray:
-    """``float32 (num_nodes, 38)`` (``order=2``) or ``(num_nodes, 17)`` (``order=1``):
-    what kernels/winding.cl reads of each node.
+    """``float32 (num_nodes, 28)`` (``order=2``) or ``(num_nodes, 15)`` (``order=1``):
+    what kernels/winding.cl reads of each node, each coefficient of the expansion
+    one float, ready to multiply (the kernel's far term adds no moments together).
 
     ``[0:3]`` the area-weighted centroid ``p`` of the node's triangles (the box's
     centre if their area is 0), ``[3]`` ``R^2``, ``R`` the distance from ``p`` to the
     farthest corner of the node's box, ``[4:7]`` ``N``, the sum of the triangles'
-    vector areas, ``[7:16]`` ``M = sum a_t (c_t - p)^T`` row by row. With ``order=2``
-    the second-order terms of ``H_ijk = sum_t a_t,i S_t,jk``, ``S_t`` the mean of
-    ``(x - p)(x - p)^T`` over triangle ``t``, in the form the kernel contracts:
-    ``[16:19]`` ``g = -3/2 (2 u + t)``, ``u_k = H_iik``, ``t_i = H_ijj``; ``[19:37]``
-    ``15/2 H_ijk`` for ``i`` = x, y, z, each over the pairs xx, yy, zz, xy, xz, yz, the
-    last three doubled. The last row (``[16]``, or ``[37]`` with ``order=2``): the far
-    floor ``A R^3 /`` :data:`FAR_DIVISOR`, ``A`` the sum of the triangles' areas. Sums
-    in float64 about the centre of the mesh's box (so that meshes far from the origin
-    lose no digits): leaves over their slots, internal
-    nodes from their children level by level, then shifted to ``p`` and rounded once.
+    vector areas; of ``M = sum a_t (c_t - p)^T``, ``[7]`` its trace and ``[8:14]``
+    ``-3`` times the coefficients of ``r^T M r`` over the pairs xx, yy, zz, xy, xz, yz
+    (``M_jj``, ``M_jk + M_kj``). With ``order=2`` the second-order terms of
+    ``H_ijk = sum_t a_t,i S_t,jk``, ``S_t`` the mean of ``(x - p)(x - p)^T`` over
+    triangle ``t``: ``[14:17]`` ``g = -3/2 (2 u + t)``, ``u_k = H_iik``,
+    ``t_i = H_ijj``; ``[17:27]`` the coefficients of the cubic
+    ``15/2 sum_ijk H_ijk r_i r_j r_k`` over its ten monomials
+    (:data:`CUBIC_MONOMIALS`). The last row (``[14]``, or ``[27]`` with ``order=2``):
+    the far floor ``A R^3 /`` :data:`FAR_DIVISOR`, ``A`` the sum of the triangles'
+    areas. Sums in float64 about the centre of the mesh's box (so that meshes far from
+    the origin lose no digits): leaves over their slots, internal nodes from their
+    children level by level, then shifted to ``p``, combined into the coefficients
+    and rounded once.
 
     Every length is multiplied by ``scale`` (default :func:`winding_scale` of the
     vertices, a power of two) before it is summed, and ``p`` divided back: ``R^2``,
@@ -224,21 +233,34 @@ def node_moments(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices:
     big_n = cols[4:7]
     out[4:7] = big_n
     b = cols[7:16].reshape(3, 3, n)        # B_ij = sum a_i c_j
-    # M = B - N p^T
-    out[7:16] = (b - big_n[:, None, :] * centre[None, :, :]).reshape(9, n)
+    # M = B - N p^T, read by the kernel as tr M and the pairs of its symmetric part
+    m = [[b[i, j] - big_n[i] * centre[j] for j in range(3)] for i in range(3)]
+    out[7] = (m[0][0] + m[1][1]) + m[2][2]
+    for q, (j, k) in enumerate(_PAIRS):
+        out[8 + q] = -3.0 * (m[j][j] if j == k else m[j][k] + m[k][j])
     if order == 2:
         # H_ijk = sum a_i Q_jk - B_ij p_k - B_ik p_j + N_i p_j p_k, B = sum a c^T
         h = {}
-        for m, (j, k) in enumerate(_PAIRS):
-            h[j, k] = h[k, j] = (cols[16 + 3 * m:19 + 3 * m] - b[:, j] * centre[k]
+        for q, (j, k) in enumerate(_PAIRS):
+            h[j, k] = h[k, j] = (cols[16 + 3 * q:19 + 3 * q] - b[:, j] * centre[k]
                                  - b[:, k] * centre[j] + big_n * (centre[j] * centre[k]))
         u = [sum(h[i, k][i] for i in range(3)) for k in range(3)]     # u_k = H_iik
         t = [sum(h[j, j][i] for j in range(3)) for i in range(3)]     # t_i = H_ijj
         for k in range(3):
-            out[16 + k] = -1.5 * (2.0 * u[k] + t[k])
-        for i in range(3):
-            for m, (j, k) in enumerate(_PAIRS):
-                out[19 + 6 * i + m] = (7.5 if j == k else 15.0) * h[j, k][i]
+            out[14 + k] = -1.5 * (2.0 * u[k] + t[k])
+        # the cubic's coefficient of each monomial r_a r_b r_c: the sum over each
+        # factor i of the monomial of 15/2 H_ijk (jk the other two), doubled where j != k
+        for c, cube in enumerate(CUBIC_MONOMIALS):
+            coefficient = 0.0
+            for n_i, i in enumerate(cube):
+                if i in cube[:n_i]:
+                    continue           # each distinct factor once
+                rest = list(cube)
+                rest.remove(i)
+                j, k = rest
+                term = (7.5 if j == k else 15.0) * h[j, k][i]
+                coefficient = term if n_i == 0 else coefficient + term
+            out[17 + c] = coefficient
     return np.ascontiguousarray(out.T)
 
 
@@ -263,7 +285,7 @@ def lane_corners(lanes: np.ndarray, nodes: np.ndarray, prim_order: np.ndarray,
 
 def wide_moments(moments: np.ndarray, lanes: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """``float32 (records, rows + CORNER_ROWS, width)``: what kernels/winding.cl reads of
-    each wide record (WIDE=1), ``rows`` those of ``moments`` (38 or 17): row ``k`` holds
+    each wide record (WIDE=1), ``rows`` those of ``moments`` (28 or 15): row ``k`` holds
     ``moments[:, k]`` (:func:`node_moments`) of each lane's binary node (``lanes``,
     ``int32 (records, width)``, -1 for an empty lane, as :class:`lbvh.queries.wide.Wide`
     keeps them); an empty lane has zeros and ``R^2`` and the far floor ``-1``, so the
@@ -311,7 +333,7 @@ def make_moments(ctx: dev.Context, tree: Tree, mesh: Mesh, wide: Wide | None,
                  order: int = DEFAULT_ORDER) -> cl.Buffer:
     """The moments on the device: ``float32 (records, rows + CORNER_ROWS, width)`` in the
     rows of ``wide``'s records where they are packed (:func:`wide_moments`), else
-    ``float32 (num_nodes, rows)`` (:func:`node_moments`); ``rows`` 38 (``order=2``) or 17.
+    ``float32 (num_nodes, rows)`` (:func:`node_moments`); ``rows`` 28 (``order=2``) or 15.
 
     Made by kernels/winding_moments.cl where :func:`device_can_make`, else by the
     twins on the host. The caller holds ``ctx.lock`` and owns the buffer returned.

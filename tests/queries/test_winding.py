@@ -64,7 +64,13 @@ def test_moments_sum_the_triangles_of_each_node():
         moment = (t[:, 4:7, None] * (c - p)[:, None, :]).sum(0)
         assert np.allclose(m[node, 0:3], p, rtol=1e-6, atol=1e-6)
         assert np.allclose(m[node, 4:7], n, rtol=1e-5, atol=1e-9)
-        assert np.allclose(m[node, 7:16], moment.ravel(), rtol=1e-4, atol=1e-9)
+        # M by its trace and -3 times its symmetric pairs xx, yy, zz, xy, xz, yz
+        sym = moment + moment.T
+        pairs = -3 * np.array([moment[0, 0], moment[1, 1], moment[2, 2], sym[0, 1], sym[0, 2],
+                               sym[1, 2]])
+        size = 1e-5 * np.abs(moment).max() + 1e-9
+        assert np.isclose(m[node, 7], np.trace(moment), rtol=1e-4, atol=size)
+        assert np.allclose(m[node, 8:14], pairs, rtol=1e-4, atol=size)
         # every vertex of the node lies within R of p
         reach = np.linalg.norm(v[f[tris]].reshape(-1, 3) - p, axis=1).max()
         assert reach <= np.sqrt(m[node, 3]) * (1 + 1e-6)
@@ -75,11 +81,14 @@ def test_moments_sum_the_triangles_of_each_node():
         s = (np.einsum("tvj,tvk->tjk", d, d) + 9 * np.einsum("tj,tk->tjk", dc, dc)) / 12
         h = np.einsum("ti,tjk->ijk", t[:, 4:7], s)
         g = -1.5 * (2 * np.einsum("iik->k", h) + np.einsum("ijj->i", h))
-        k = np.stack([7.5 * h[:, 0, 0], 7.5 * h[:, 1, 1], 7.5 * h[:, 2, 2],
-                      15 * h[:, 0, 1], 15 * h[:, 0, 2], 15 * h[:, 1, 2]], axis=1)
-        scale = np.abs(k).max() + 1e-30
-        assert np.allclose(m[node, 16:19], g, rtol=1e-4, atol=1e-5 * scale)
-        assert np.allclose(m[node, 19:37], k.ravel(), rtol=1e-4, atol=1e-5 * scale)
+        scale = 7.5 * np.abs(h).max() + 1e-30
+        assert np.allclose(m[node, 14:17], g, rtol=1e-4, atol=1e-5 * scale)
+        # the cubic 15/2 sum H_ijk r_i r_j r_k, from its ten coefficients, at any r
+        for r in rng.normal(size=(5, 3)):
+            cubic = sum(m[node, 17 + c] * r[a] * r[b] * r[d]
+                        for c, (a, b, d) in enumerate(wm.CUBIC_MONOMIALS))
+            assert np.isclose(cubic, 7.5 * np.einsum("ijk,i,j,k", h, r, r, r),
+                              rtol=1e-4, atol=1e-4 * scale)
     # the far floor, last: the node's triangle area A times R^3 over 4 pi NODE_ERROR
     areas = np.linalg.norm(np.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0]),
                            axis=1).astype(np.float64) / 2
@@ -90,7 +99,7 @@ def test_moments_sum_the_triangles_of_each_node():
     # the first-order moments are the same numbers, without the second-order rows
     first = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f, order=1)
     assert first.shape == (bvh.num_nodes, ROWS_ORDER1) and m.shape[1] == ROWS_ORDER2
-    assert np.array_equal(first[:, :16], m[:, :16].astype(np.float32))
+    assert np.array_equal(first[:, :14], m[:, :14].astype(np.float32))
     assert np.array_equal(first[:, -1], m[:, -1].astype(np.float32))
     with pytest.raises(ValueError, match="order"):
         node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f, order=3)
