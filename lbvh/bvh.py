@@ -21,6 +21,7 @@ import pyopencl.array as cl_array
 
 from . import device as dev
 from .builders.refit import refit_boxes
+from .builders.restructure import restructured
 from .layout import NODE_DTYPE, children_of, is_leaf, node_depths, parents_of, prim_range_of
 from .mesh import as_faces, as_vertices
 from .queries import all_hits as hits_along, closest, overlap, traverse, winding
@@ -70,6 +71,7 @@ class BVH:
         self._slot_triangles: cl.Buffer | None = None
         self._moments: tuple[Wide, cl.Buffer] | None = None
         self._depth: int | None = None
+        self._winding: BVH | None = None   # the winding walk's copy (winding_target)
         # Everything handed back when this BVH is dropped: the tree's buffers and
         # the caches' (appended as they are made).
         self._owned: list[cl.Buffer] = tree.buffers()
@@ -247,6 +249,23 @@ class BVH:
             self._owned.append(buf)
         return self._moments[1]
 
+    @dev.serialised
+    def winding_target(self) -> "BVH":
+        """The BVH that the winding-number walk runs on (:meth:`contains`,
+        :meth:`winding_numbers`, the sign of :meth:`signed_distance`): for a default LBVH
+        tree (:func:`lbvh.queries.winding.walks_a_copy`) a copy of it after
+        :data:`~lbvh.queries.winding.WINDING_TREELET_ROUNDS` rounds of treelet
+        restructuring, over the same mesh, made on first use, refitted with this one and
+        walked through records of this one's width; otherwise this BVH itself."""
+        if not winding.walks_a_copy(self.tree.builder) or self.num_prims < 3:
+            return self
+        if self._winding is None:
+            self._winding = BVH(self.mesh, restructured(self.tree, winding.WINDING_TREELET_ROUNDS,
+                                                        winding.WINDING_TREELET_LEAVES))
+        if self._wide is not None:
+            self._winding.wide_records(width=self._wide.width)
+        return self._winding
+
     def _drop_moments(self) -> None:
         held, self._moments = self._moments, None
         if held is not None:
@@ -275,6 +294,14 @@ class BVH:
         if v.shape != self.vertices.shape:
             raise ValueError(f"vertices: shape {v.shape}, the tree was built over {self.vertices.shape}")
         mesh = self.mesh.with_vertices(self.ctx, v)
+        self._refit_over(mesh)
+        if self._winding is not None:
+            self._winding._refit_over(mesh)   # the winding walk's copy: the same vertices
+        return self
+
+    def _refit_over(self, mesh: Mesh) -> None:
+        """Refit the tree's boxes to ``mesh`` (this one's faces over moved vertices, on
+        the device) and renew the caches made of the old ones."""
         tree = self.tree
         leaf_list = tree.leaf_walks()[0]
         refit_boxes(self.ctx, mesh.vertices_buf, mesh.faces_buf, tree.prim_order, tree.nodes,
@@ -285,7 +312,6 @@ class BVH:
         self._drop_slot_triangles()   # of the old vertices: likewise
         if self._wide is not None:
             write_records(self.tree, self._wide)   # the traversal's copies of the boxes
-        return self
 
     def leaf_walks(self) -> tuple[cl.Buffer | None, int, int]:
         """Where bottom-up walks start (:meth:`lbvh.tree.Tree.leaf_walks`)."""

@@ -96,6 +96,30 @@ def restructure(tree: Tree, rounds: int, mem: Scope, c_node: float = C_NODE,
     return dataclasses.replace(tree, builder=f"{tree.builder}+treelets{rounds}{size}"), events
 
 
+def restructured(tree: Tree, rounds: int, leaves: int = TREELET_LEAVES,
+                 min_leaves: int = TREELET_MIN_LEAVES) -> Tree:
+    """The optimiser on a copy: a new tree (new buffers: nodes, parent, slots, leaf list)
+    after ``rounds`` of :func:`restructure`; ``tree`` is not modified. The caller holds
+    ``ctx.lock`` and owns the buffers of the tree returned (``Tree.buffers``)."""
+    ctx, memory = tree.ctx, tree.ctx.memory
+    copies: list[cl.Buffer] = []
+    try:
+        for buf in tree.buffers():
+            copies.append(memory.alloc(buf.size))
+            cl.enqueue_copy(ctx.queue, copies[-1], buf)
+        copy = dataclasses.replace(
+            tree, nodes=copies[0], parent=copies[1], prim_order=copies[2],
+            leaf_nodes_buf=copies[3] if tree.leaf_nodes_buf is not None else None, report=None)
+        with memory.scope() as mem:
+            copy, _ = restructure(copy, rounds, mem, leaves=leaves, min_leaves=min_leaves)
+            mem.close()
+        ctx.queue.finish()
+    except BaseException:
+        memory.free(*copies)
+        raise
+    return copy
+
+
 def check_rounds(rounds: object) -> int:
     """The number of restructuring rounds as an int >= 0, or a ValueError naming it."""
     if isinstance(rounds, bool) or not isinstance(rounds, (int, np.integer)) or rounds < 0:

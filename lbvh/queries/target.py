@@ -32,6 +32,10 @@ class QueryTarget(Protocol):
     def traversal_depth(self) -> int:
         """The tree's depth (0 for a root leaf), cached."""
 
+    def winding_target(self) -> "QueryTarget":
+        """The target the winding-number walk runs on (:mod:`lbvh.queries.winding`):
+        itself, or a restructured copy of its tree over the same mesh, cached."""
+
     def winding_moments(self) -> cl.Buffer:
         """The moments of the winding numbers (:func:`lbvh.queries.winding_moments.make_moments`),
         cached."""

@@ -26,14 +26,19 @@ its triangles' solid angles about their area-weighted centroid up to the
 second order, where it is also far enough for its area
 (:data:`lbvh.queries.winding_moments.NODE_ERROR`) (Barill et al. 2018; :mod:`lbvh.queries.winding_moments` makes the
 moments once per tree, in float64 on the device, and the :class:`lbvh.BVH` keeps
-them; :func:`expansion_numpy` is the twin of the far-node term). ``beta = 1.35`` (the
+them; :func:`expansion_numpy` is the twin of the far-node term). ``beta = 1.4`` (the
 default) keeps ``|w - w_exact|`` within
 :data:`lbvh.verification.error_bound.WINDING_BOUND` on the tests' meshes and
 the bench's scenes, far below the 1/2 that would flip ``contains``; a larger
 ``beta`` is slower and closer. (It was 1.3 until a point of the bench's Sponza
 set came out 0.058 from the exact sum, past the bound: a cluster of small nodes
 just past 1.3 radii whose errors all had one sign. At 1.35 the largest error
-over the bench's 1M points per scene is 0.042 on Sponza, for 4-7% more time.) The second-order term is what lets ``beta`` be
+over the bench's 1M points per scene was 0.042 on Sponza, for 4-7% more time;
+through the restructured copy of the tree that the walk now takes
+(:data:`WINDING_TREELET_ROUNDS`) it was 0.049, and 0.043 at 1.4.) The
+default LBVH tree is walked through a copy of it restructured with treelets,
+made at the first inside query (:meth:`lbvh.BVH.winding_target`): 1.4x the
+points per second on Sponza. The second-order term is what lets ``beta`` be
 that small: against the first-order expansion at ``beta = 2`` (what came
 before) it gives 1.7x, 1.7x and 1.9x the points per second on the bunny, Sponza
 and a 1M-triangle terrain, with a largest error on the tests' meshes of 0.023
@@ -74,13 +79,14 @@ from .winding_moments import (CUBIC_MONOMIALS, DEFAULT_ORDER, NODE_ERROR, ROWS_O
 KERNEL_FILE = "winding.cl"
 
 __all__ = ["DEFAULT_BETA", "DEFAULT_ORDER", "NODE_ERROR", "PACKET", "SIGN_BETA", "SIGN_NODE_ERROR",
-           "SIGN_FILTER_BOUND", "expansion_numpy", "use_packets", "winding_numbers", "inside",
+           "SIGN_FILTER_BOUND", "WINDING_TREELET_ROUNDS", "WINDING_TREELET_LEAVES",
+           "expansion_numpy", "use_packets", "walks_a_copy", "winding_numbers", "inside",
            "contains", "signed_distance", "winding_numbers_numpy"]
 
 #: The accuracy parameter of Barill et al. 2018: a node is expanded only where the point
 #: lies farther than beta times its radius (with the second-order expansion; the
 #: first-order one needs about 2 for the same error).
-DEFAULT_BETA = 1.35
+DEFAULT_BETA = 1.4
 
 #: The first pass of :func:`inside` (``contains``, the sign of ``signed_distance``): a
 #: walk at this ``beta`` and :data:`SIGN_NODE_ERROR` answers every point whose ``w``
@@ -94,9 +100,36 @@ SIGN_NODE_ERROR = 0.16
 #: The walk at :data:`SIGN_BETA` and :data:`SIGN_NODE_ERROR` keeps ``|w - w_exact|``
 #: within this. Measured as :data:`lbvh.verification.error_bound.WINDING_BOUND` is,
 #: over 1,048,576 points in the box grown by a fifth of each of the bench's scenes
-#: against the walk at ``beta = 4``: at most 0.075 on the bunny, 0.136 on Sponza and
-#: 0.094 on a 1M-triangle terrain (0.041, 0.122 and 0.065 at the default node error).
+#: against the walk at ``beta = 4``: at most 0.087 on the bunny, 0.187 on Sponza and
+#: 0.073 on a 1M-triangle terrain through the restructured copy the walk takes
+#: (:data:`WINDING_TREELET_ROUNDS`); 0.075, 0.136 and 0.094 through the Morton trees
+#: (0.041, 0.122 and 0.065 there at the default node error).
 SIGN_FILTER_BOUND = 0.25
+
+#: The winding walk's own tree (:func:`walks_a_copy`, :meth:`lbvh.BVH.winding_target`):
+#: a default LBVH tree is walked through a copy of it after this many rounds of treelet
+#: restructuring (:func:`lbvh.builders.restructure.restructured`, Karras & Aila 2013) of
+#: :data:`WINDING_TREELET_LEAVES` leaves, made at the first inside query. The walk opens
+#: the nodes whose balls hold a point, and the Morton tree's nodes, split where the codes
+#: split, are larger than they need be. On the bench's 1M points (bench/README.md):
+#: Sponza's ``contains`` 1.41x (252 -> 179 ms), its ``winding_numbers`` 1.38x, terrain-1m's
+#: 1.07x and 1.04x, the bunny's the same, for 35 ms (Sponza) to 150 ms (terrain-1m) more
+#: at the first inside query and a second tree's nodes and slots on the device. The
+#: closest points keep the BVH's own tree (on Sponza 10% slower through a restructured
+#: one).
+WINDING_TREELET_ROUNDS = 6
+#: Leaves per treelet of the winding walk's copy: 5 (not the builder's 7), a third of
+#: the work a round for most of its gain.
+WINDING_TREELET_LEAVES = 5
+
+
+def walks_a_copy(builder: str) -> bool:
+    """Whether the winding walk goes through a restructured copy of a tree made by
+    ``builder`` (:data:`WINDING_TREELET_ROUNDS`): only the default LBVH's (``"lbvh"``);
+    a tree built with treelet rounds, a leaf collapse or another builder is walked as
+    it is, as its maker chose."""
+    return builder == "lbvh"
+
 
 #: Bit of the per-point flag word: the stack was full and a subtree was skipped.
 FLAG_OVERFLOW = 1
@@ -219,6 +252,7 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
         ValueError: a bad point (named), ``beta``, ``node_error`` or ``batch_size``.
         RuntimeError: the traversal stack overflowed (a tree deeper than 768 levels).
     """
+    target = target.winding_target()
     if target.tree.clipped_leaves:
         raise ValueError("winding_numbers: this tree has spatial splits (builder='sbvh'), whose "
                          "nodes would count a split triangle more than once; build another tree "

@@ -98,13 +98,18 @@ def scene_closest_distance_bound(vertices: np.ndarray, points: np.ndarray) -> np
 
 
 #: Generalised winding numbers (kernels/winding.cl) against the exact float64 sum, at the
-#: default ``beta = 1.35`` with the second-order expansion: ``|w - w_exact| <=
-#: WINDING_BOUND``. Not a proof but a measured bound with room: the largest error over
-#: the tests' meshes (a faceted sphere, an icosphere, a box, the teapot, a soup; 1,500
-#: points each, the default and the SAH tree) was 0.023 at ``beta = 1.3``, and over
-#: 1,048,576 points in the box grown by a fifth of each of the bench's scenes, against
-#: the walk at ``beta = 4`` (itself within 0.002), 0.025 on the bunny, 0.042 on Sponza
-#: and 0.031 on a 1M-triangle terrain. At ``beta = 1.3`` these were 0.033, 0.058 and
+#: default ``beta = 1.4`` with the second-order expansion: ``|w - w_exact| <=
+#: WINDING_BOUND``. Through the restructured copy of the tree that the walk takes
+#: (:data:`lbvh.queries.winding.WINDING_TREELET_ROUNDS`), over the bench's 1M points per
+#: scene against the walk at ``beta = 4``: 0.022 on the bunny, 0.043 on Sponza and 0.026
+#: on terrain-1m; 0.028, 0.049 and 0.029 at 1.35, the default until then (too close to
+#: the bound on Sponza). Not a proof but a measured bound with room. Before the copy:
+#: the largest error over the tests' meshes (a faceted sphere, an icosphere, a box, the
+#: teapot, a soup; 1,500 points each, the default and the SAH tree) was 0.023 at
+#: ``beta = 1.3``, and over 1,048,576 points in the box grown by a fifth of each of the
+#: bench's scenes, against the walk at ``beta = 4`` (itself within 0.002), 0.025 on the
+#: bunny, 0.042 on Sponza and 0.031 on a 1M-triangle terrain at 1.35. At ``beta = 1.3``
+#: these were 0.033, 0.058 and
 #: 0.039 on the trees of 2026-12-04 (past the bound on one Sponza point: six small nodes
 #: at 1.31-1.36 radii, each off by 0.007-0.015, all of one sign), 0.031, 0.048 and 0.037
 #: on those of the commit that set it, and 0.031, 0.062 and 0.042 before far nodes had

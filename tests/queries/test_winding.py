@@ -658,19 +658,66 @@ def test_bunny_with_its_holes():
 
 def test_sponza_point_where_small_nodes_add_up():
     """A point of the bench's Sponza set (bench_queries.query_points, 2^20 points,
-    index 52,677) where six small far nodes at 1.31-1.36 radii were each off by
-    0.007-0.015, all of one sign: 0.058 from the exact sum at beta = 1.3, past
-    WINDING_BOUND; the default beta (1.35) opens them. The binary and the wide walk."""
+    index 52,677) where six small far nodes of the default LBVH tree at 1.31-1.36
+    radii were each off by 0.007-0.015, all of one sign: 0.058 from the exact sum at
+    beta = 1.3, past WINDING_BOUND; the default beta opens them. The Morton tree as it
+    is (another builder's name: walked as it is) through its wide records and its
+    binary nodes, and the default BVH (its restructured copy)."""
     v, f = shared_mesh("crytek_sponza.obj")
     q = np.float32([[float.fromhex("0x1.5f8d68p+6"), float.fromhex("-0x1.aab954p+1"),
                      float.fromhex("-0x1.b9d454p+4")]])
     exact = winding_numbers_numpy(v, f, q)
     bvh = lbvh.build(v, f)
+    as_is = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
+    assert as_is.winding_target() is as_is and as_is.wide_records().packed
     binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
     assert not binary.wide_records(max_bytes=0).packed
-    for tree in (bvh, binary):
+    for tree in (bvh, as_is, binary):
         assert abs(tree.winding_numbers(q)[0] - exact[0]) <= WINDING_BOUND
-    assert abs(bvh.winding_numbers(q, beta=1.3)[0] - exact[0]) > WINDING_BOUND
+    assert abs(as_is.winding_numbers(q, beta=1.3)[0] - exact[0]) > WINDING_BOUND
+
+
+def test_the_default_tree_is_walked_through_a_restructured_copy():
+    """A default LBVH tree's inside queries walk a copy of it after
+    WINDING_TREELET_ROUNDS rounds of treelets (lbvh.builders.restructure.restructured):
+    the BVH's own tree is untouched (its rays and closest points keep it), the copy is
+    a valid tree over the same triangles, made once and kept, refitted with the BVH
+    (no new copy), walked through records of the BVH's width, and its answers are within
+    the bound of the exact sum before and after the refit. A tree built with treelets, a
+    collapse or another builder is walked as it is."""
+    v, f = shipped_mesh("teapot.obj")
+    p = box_points(v, 1500, 11)
+    bvh = lbvh.build(v, f)
+    nodes = bvh.nodes.copy()
+    w = bvh.winding_numbers(p)
+    copy = bvh.winding_target()
+    assert copy is not bvh and copy is bvh.winding_target()
+    assert copy.builder == f"lbvh+treelets{winding.WINDING_TREELET_ROUNDS}-" \
+                           f"{winding.WINDING_TREELET_LEAVES}"
+    assert copy.winding_target() is copy
+    fresh = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
+    assert np.array_equal(fresh.nodes, nodes)    # read back from the device: unchanged
+    copy.validate()
+    assert sorted(copy.prim_order) == list(range(len(f)))
+    assert not np.array_equal(copy.nodes, nodes)   # another topology
+    assert np.abs(w - winding_numbers_numpy(v, f, p)).max() <= WINDING_BOUND
+    assert np.array_equal(bvh.contains(p), copy.winding_numbers(p) > 0.5)
+    # a refit moves both trees' boxes; the same copy answers for the moved mesh
+    moved = (v * np.float32(1.5) + np.float32(0.25)).astype(np.float32)
+    bvh.refit(moved)
+    assert bvh.winding_target() is copy
+    q = (p * np.float32(1.5) + np.float32(0.25)).astype(np.float32)
+    exact = winding_numbers_numpy(moved, f, q)
+    assert np.abs(bvh.winding_numbers(q) - exact).max() <= WINDING_BOUND
+    copy.validate()
+    # the BVH's record width is the walk's
+    bvh.wide_records(width=4)
+    assert bvh.winding_target().wide_records().width == 4
+    assert np.abs(bvh.winding_numbers(q) - exact).max() <= WINDING_BOUND
+    # trees their makers chose are walked as they are
+    for kw in ({"treelet_rounds": 1}, {"collapse": True}, {"builder": "sah"}):
+        other = lbvh.build(v, f, **kw)
+        assert other.winding_target() is other
 
 
 def test_sponza_sign_filter_answers_as_the_default_beta():
