@@ -252,8 +252,8 @@ class BVH:
     @dev.serialised
     def winding_target(self) -> "BVH":
         """The BVH that the winding-number walk runs on (:meth:`contains`,
-        :meth:`winding_numbers`, the sign of :meth:`signed_distance`): for a default LBVH
-        tree (:func:`lbvh.queries.winding.walks_a_copy`) a copy of it after
+        :meth:`winding_numbers`, the sign of :meth:`signed_distance`): for an LBVH tree
+        without treelet rounds (:func:`lbvh.queries.winding.walks_a_copy`) a copy of it after
         :data:`~lbvh.queries.winding.WINDING_TREELET_ROUNDS` rounds of treelet
         restructuring, over the same mesh, made on first use, refitted with this one and
         walked through records of this one's width; otherwise this BVH itself."""

@@ -678,13 +678,13 @@ def test_sponza_point_where_small_nodes_add_up():
 
 
 def test_the_default_tree_is_walked_through_a_restructured_copy():
-    """A default LBVH tree's inside queries walk a copy of it after
+    """An LBVH tree's inside queries walk a copy of it after
     WINDING_TREELET_ROUNDS rounds of treelets (lbvh.builders.restructure.restructured):
     the BVH's own tree is untouched (its rays and closest points keep it), the copy is
     a valid tree over the same triangles, made once and kept, refitted with the BVH
     (no new copy), walked through records of the BVH's width, and its answers are within
-    the bound of the exact sum before and after the refit. A tree built with treelets, a
-    collapse or another builder is walked as it is."""
+    the bound of the exact sum before and after the refit. A collapsed LBVH gets a copy
+    too; a tree built with treelets or by another builder is walked as it is."""
     v, f = shipped_mesh("teapot.obj")
     p = box_points(v, 1500, 11)
     bvh = lbvh.build(v, f)
@@ -714,8 +714,12 @@ def test_the_default_tree_is_walked_through_a_restructured_copy():
     bvh.wide_records(width=4)
     assert bvh.winding_target().wide_records().width == 4
     assert np.abs(bvh.winding_numbers(q) - exact).max() <= WINDING_BOUND
-    # trees their makers chose are walked as they are
-    for kw in ({"treelet_rounds": 1}, {"collapse": True}, {"builder": "sah"}):
+    # a collapsed LBVH gets a copy too; trees restructured or built otherwise do not
+    collapsed = lbvh.build(v, f, collapse=True)
+    assert collapsed.winding_target().builder.startswith("lbvh+collapse+treelets")
+    assert np.abs(collapsed.winding_numbers(p) - winding_numbers_numpy(v, f, p)).max() \
+        <= WINDING_BOUND
+    for kw in ({"treelet_rounds": 1}, {"builder": "sah"}):
         other = lbvh.build(v, f, **kw)
         assert other.winding_target() is other
 
