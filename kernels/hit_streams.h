@@ -138,68 +138,58 @@ inline void gather_lane_triangles(__global const float *vertices, __global const
     }
 }
 
-/* hit_triangle (ray_triangle.h, the watertight test) of *ray, not a hard one,
- * against the triangles of `tri` in the lanes set in `lanes` at once, by the
- * same operations lane by lane, so the same decisions and the same t, u, v;
- * each hit that accept_hit takes is counted and kept by keep_hit, the lanes in
- * ascending order. Returns the lanes whose test takes the double fallback
- * (an edge function, det or T outside float32's normal range): the caller
- * tests those triangles by hit_triangle. Forced inline: its rows stay in
- * registers. */
+/* The lanes in `lanes` whose first triangle (in `tri`) the ray, not a hard
+ * one, certainly misses, found in one float32 vector computation: the caller
+ * tests the others by hit_triangle (ray_triangle.h), whose decisions are
+ * exact, so the hits are the same as the triangles one by one. A lane is a
+ * certain miss where two of its float32 edge functions U', V', W' have
+ * opposite signs by more than their error bound
+ *   |F' - F| <= 2^-17 Q S + 2^-39 Q^2 + 2^-120,
+ * with Q the largest |p - o| of the triangle's float32 offsets, S the largest
+ * |x'|, |y'| of its sheared corners and F the exact edge function (as in
+ * hit_triangle; |ex|, |ey| <= |ez| < 1 for a ray that is not hard). Each offset
+ * and sheared coordinate is off by at most 6.01 u Q + 2^-125 (u = 2^-24;
+ * offsets round once, the shear's products and difference once each; 2^-125
+ * for results below float32's normal range, flushed or not), so each edge
+ * function by 32.1 u Q S + 145 u^2 Q^2 plus terms that Q >= 2^-100 keeps below
+ * the bound; a triangle with Q outside [2^-100, 2^60) (where a product could
+ * overflow) is left to hit_triangle. Forced inline: its rows stay in registers. */
 __attribute__((always_inline)) inline uint
-lane_triangle_hits(const floatw_lanes *tri, __global const int *ref,
-                   __global const int *prim_order, __global const float *vertices,
-                   const Ray *ray, uint lanes, long first, int cap, __global float *out_t,
-                   __global float *out_u, __global float *out_v, __global int *out_prim,
-                   int *found) {
+lane_triangle_misses(const floatw_lanes *tri, const Ray *ray, uint lanes) {
     const int kx = ray->kx, ky = ray->ky, kz = ray->kz;
     const floatw px = (floatw)(ray->px), py = (floatw)(ray->py), pz = (floatw)(ray->pz);
     const floatw ex = (floatw)(ray->ex), ey = (floatw)(ray->ey), ez = (floatw)(ray->ez);
-    const floatw sz = (floatw)(ray->sz);
-    floatw_lanes az, bz, cz, pax, pay, pbx, pby, pcx, pcy, det, T, V, W;
-    az.v = tri[kz].v - pz;
-    bz.v = tri[3 + kz].v - pz;
-    cz.v = tri[6 + kz].v - pz;
-    pax.v = tri[kx].v - px; pay.v = tri[ky].v - py;
-    pbx.v = tri[3 + kx].v - px; pby.v = tri[3 + ky].v - py;
-    pcx.v = tri[6 + kx].v - px; pcy.v = tri[6 + ky].v - py;
-    const floatw ax = pax.v * ez - az.v * ex;
-    const floatw ay = pay.v * ez - az.v * ey;
-    const floatw bx = pbx.v * ez - bz.v * ex;
-    const floatw by = pby.v * ez - bz.v * ey;
-    const floatw cx = pcx.v * ez - cz.v * ex;
-    const floatw cy = pcy.v * ez - cz.v * ey;
-    const floatw U = cx * by - cy * bx;
-    V.v = ax * cy - ay * cx;
-    W.v = bx * ay - by * ax;
-    det.v = U + V.v + W.v;
-    T.v = U * (sz * az.v) + V.v * (sz * bz.v) + W.v * (sz * cz.v);
-    /* hit_triangle's fallback and sign tests, as masks */
     const intw magnitude = (intw)(0x7fffffff);
-    const floatw lo = (floatw)(FLT_MIN), hi = (floatw)(FLT_MAX);
-    const floatw aU = as_floatw(as_intw(U) & magnitude), aV = as_floatw(as_intw(V.v) & magnitude);
-    const floatw aW = as_floatw(as_intw(W.v) & magnitude);
-    const floatw adet = as_floatw(as_intw(det.v) & magnitude);
-    const floatw aT = as_floatw(as_intw(T.v) & magnitude);
-    const intw normal = (aU >= lo) & (aV >= lo) & (aW >= lo) & (adet >= lo) & (adet <= hi) &
-                        (aT >= lo) & (aT <= hi);
-    const floatw zero = (floatw)(0.0f);
-    const intw inside = ((U > zero) & (V.v > zero) & (W.v > zero)) |
-                        ((U < zero) & (V.v < zero) & (W.v < zero));
-    const uint fallback = lanes & ~lane_bits(normal);
-    for (uint m = lanes & lane_bits(normal & inside); m != 0u; m &= m - 1u) {
-        const int c = lowest_lane(m);
-        const int s = ref[c];
-        float t = T.s[c] / det.s[c];
-        if (!accept_hit(vertices, 9 * s, 9 * s + 3, 9 * s + 6, ray, INFINITY, &t, -1.0f,
-                        pax.s[c], pbx.s[c], pcx.s[c], pay.s[c], pby.s[c], pcy.s[c], az.s[c],
-                        bz.s[c], cz.s[c]))
-            continue;
-        keep_hit(prim_order, s, det.s[c] > 0.0f ? 1 : -1, t, V.s[c] / det.s[c],
-                 W.s[c] / det.s[c], ray, 0, first, cap,
-                 out_t, out_u, out_v, out_prim, out_prim, found);
-    }
-    return fallback;
+#define LANE_ABS(x) as_floatw(as_intw(x) & magnitude)
+#define LANE_MAX(x, y) max_keep_w((x), (y))
+    const floatw az = tri[kz].v - pz, bz = tri[3 + kz].v - pz, cz = tri[6 + kz].v - pz;
+    const floatw pax = tri[kx].v - px, pay = tri[ky].v - py;
+    const floatw pbx = tri[3 + kx].v - px, pby = tri[3 + ky].v - py;
+    const floatw pcx = tri[6 + kx].v - px, pcy = tri[6 + ky].v - py;
+    const floatw ax = pax * ez - az * ex;
+    const floatw ay = pay * ez - az * ey;
+    const floatw bx = pbx * ez - bz * ex;
+    const floatw by = pby * ez - bz * ey;
+    const floatw cx = pcx * ez - cz * ex;
+    const floatw cy = pcy * ez - cz * ey;
+    const floatw U = cx * by - cy * bx;
+    const floatw V = ax * cy - ay * cx;
+    const floatw W = bx * ay - by * ax;
+    floatw Q = LANE_MAX(LANE_MAX(LANE_ABS(az), LANE_ABS(bz)), LANE_ABS(cz));
+    Q = LANE_MAX(Q, LANE_MAX(LANE_MAX(LANE_ABS(pax), LANE_ABS(pay)), LANE_ABS(pbx)));
+    Q = LANE_MAX(Q, LANE_MAX(LANE_MAX(LANE_ABS(pby), LANE_ABS(pcx)), LANE_ABS(pcy)));
+    floatw S = LANE_MAX(LANE_MAX(LANE_ABS(ax), LANE_ABS(ay)), LANE_ABS(bx));
+    S = LANE_MAX(S, LANE_MAX(LANE_MAX(LANE_ABS(by), LANE_ABS(cx)), LANE_ABS(cy)));
+    const floatw bound = ((floatw)(0x1p-17f) * Q) * S + ((floatw)(0x1p-39f) * Q) * Q +
+                         (floatw)(0x1p-120f);
+    const floatw nb = -bound;
+    const intw pos = (U > bound) | (V > bound) | (W > bound);
+    const intw neg = (U < nb) | (V < nb) | (W < nb);
+    /* no product underflows past the bound's terms, none overflows (false for NaN) */
+    const intw settled = (Q >= (floatw)(0x1p-100f)) & (Q < (floatw)(0x1p60f));
+#undef LANE_ABS
+#undef LANE_MAX
+    return lanes & lane_bits(pos & neg & settled);
 }
 #endif
 
@@ -274,13 +264,10 @@ inline void stream_hits(__global const float *records, __global const int *prim_
                 long first;
                 const int cap = kept_slots(offsets, k, &first);
                 int found = counts[k];
-                /* the lanes whose first triangle the vector test has not done */
+                /* the lanes whose first triangle the vector test has not ruled out */
                 uint scalar = leaves;
 #if LANE_TRIANGLES
-                if (!ray.hard)
-                    scalar = lane_triangle_hits(tri, ref, prim_order, vertices, &ray, leaves,
-                                                first, cap, out_t, out_u, out_v, out_prim,
-                                                &found);
+                if (!ray.hard) scalar = leaves & ~lane_triangle_misses(tri, &ray, leaves);
 #endif
                 for (uint m = leaves; m != 0u; m &= m - 1u) {
                     const int c = lowest_lane(m);

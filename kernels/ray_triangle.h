@@ -5,10 +5,12 @@
  * same through a scene of instances).
  *
  * Compile-time choices (-D), all optional:
- *   TRIANGLE_TEST=0  watertight test of Woop, Benthin, Wald 2013 (default)
+ *   TRIANGLE_TEST=0  watertight test of Woop, Benthin, Wald 2013 (default),
+ *                    its decisions exact where the device has doubles
  *   TRIANGLE_TEST=1  Moller-Trumbore 1997 (faster, leaks through shared edges)
  *   SLAB_PAD=x       factor on the far distance of a box (Ize 2013)
- *   NO_FP64=1        leave out the double fallback of the watertight test
+ *   NO_FP64=1        the watertight test in float32 only, as on devices
+ *                    without doubles (decisions rounded, not exact)
  *   EDGE_RULE=1      a ray through an edge or a vertex hits exactly one of the
  *                    triangles around it (see ruled_inside); the default
  *                    accepts it in every one of them
@@ -31,11 +33,15 @@
 #define FLAG_VISIT_LIMIT 2 /* more nodes visited than the tree has: not a tree */
 #define FLAG_NAN_RAY 4     /* NaN in the ray: not traced (the host API refuses such rays) */
 
-/* The double fallback of the watertight test where the device has doubles
- * (-DNO_FP64 leaves it out, to test the path of devices without them). */
-#if TRIANGLE_TEST == TEST_WATERTIGHT && defined(cl_khr_fp64) && !defined(NO_FP64)
+/* Doubles where the device has them (-DNO_FP64 leaves them out, to test the
+ * path of devices without them): the exact decisions (exact.h). */
+#if defined(cl_khr_fp64) && !defined(NO_FP64)
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#define EXACT_FP64 1
+#include "exact.h"
+#if TRIANGLE_TEST == TEST_WATERTIGHT
 #define WATERTIGHT_FP64 1
+#endif
 #endif
 
 #ifndef EDGE_RULE
@@ -274,18 +280,34 @@ inline int slab(__global const float *box, const Ray *ray, float limit,
     return t0 <= min_keep(t1, limit) * SLAB_PAD;
 }
 
-/* Zero-area triangles (repeated or collinear vertices) must never be hit, but
- * after rounding their projected edge functions can all share a sign. A
- * triangle is degenerate when |e1 x e2| <= 2^-20 |e1| |e2|, evaluated on the
- * edges scaled to a largest component of 1 (no overflow or underflow). Called
- * only for a hit that would be accepted, so it costs nothing on the way.
- * DEGENERATE_TEST=0 leaves the test out, for triangles read from
- * traverse.cl's order_triangles, which has made each degenerate one a point
- * (its three corners its first: no hit, U = V = W = 0 and det = 0). */
-#define DEGENERATE_SINE2 0x1p-40f
+/* Zero-area triangles (repeated or collinear vertices) are never hit.
+ * Where the device has doubles (EXACT_FP64) a triangle is degenerate exactly
+ * when its three points lie on a line: the three 2D orientations of its
+ * projections on the axis planes (the components of (b - a) x (c - a)) are
+ * exactly zero (exact.h), which depends on the triangle as a set of points
+ * only, neither on the order of its corners nor on a scale by a power of two.
+ * The watertight test below then needs no such test (its decisions are exact,
+ * and a collinear triangle's edge functions are all exactly zero or of two
+ * signs); order_triangles uses it to store degenerate triangles as points.
+ * Without doubles the approximation of old: degenerate when
+ * |e1 x e2| <= 2^-20 |e1| |e2|, the edges from the first corner scaled to a
+ * largest component of 1, which also takes slivers thinner than 2^-20 of
+ * their length for lines. DEGENERATE_TEST=0 leaves the test out of
+ * accept_hit, for triangles read from traverse.cl's order_triangles, which has
+ * made each degenerate one a point (its three corners its first: no hit). */
 #ifndef DEGENERATE_TEST
 #define DEGENERATE_TEST 1
 #endif
+#ifdef EXACT_FP64
+inline int degenerate(__global const float *vertices, int i0, int i1, int i2) {
+    const float ax = vertices[i0], ay = vertices[i0 + 1], az = vertices[i0 + 2];
+    const float bx = vertices[i1], by = vertices[i1 + 1], bz = vertices[i1 + 2];
+    const float cx = vertices[i2], cy = vertices[i2 + 1], cz = vertices[i2 + 2];
+    return orient2d_is_zero(ax, ay, bx, by, cx, cy) && orient2d_is_zero(ay, az, by, bz, cy, cz) &&
+           orient2d_is_zero(az, ax, bz, bx, cz, cx);
+}
+#else
+#define DEGENERATE_SINE2 0x1p-40f
 inline float max_abs3(float x, float y, float z) {
     x = x < 0.0f ? -x : x;
     y = y < 0.0f ? -y : y;
@@ -309,6 +331,7 @@ inline int degenerate(__global const float *vertices, int i0, int i1, int i2) {
     const float nn = nx * nx + ny * ny + nz * nz;
     return nn <= DEGENERATE_SINE2 * (ax * ax + ay * ay + az * az) * (bx * bx + by * by + bz * bz);
 }
+#endif
 
 /* Whether a triangle's hit at *t counts, and its t. The hit must lie in
  * [tmin, tmax] and before *best; the triangle must not be degenerate; and the
@@ -358,7 +381,7 @@ inline int accept_hit(__global const float *vertices, int i0, int i1, int i2, co
     }
     th = max_keep(t0, th);
     if (!(th <= ray->tmax && th < best)) return 0;
-#if DEGENERATE_TEST
+#if DEGENERATE_TEST && !defined(WATERTIGHT_FP64)
     if (degenerate(vertices, i0, i1, i2)) return 0;
 #endif
     *t = th;
@@ -386,76 +409,192 @@ inline int accept_hit_loading(__global const float *vertices, int i0, int i1, in
  * crossing of a closed surface is counted +1 or -1 consistently with its
  * neighbours through a shared edge (every_hit.h SIGNED). */
 #if TRIANGLE_TEST == TEST_WATERTIGHT && defined(WATERTIGHT_FP64)
-/* The watertight test in double from the sheared float coordinates (see below). */
-inline int hit_triangle_fp64(__global const float *vertices, int i0, int i1, int i2,
-                             const Ray *ray, float ax, float ay, float az, float bx, float by,
-                             float bz, float cx, float cy, float cz, float own,
-                             float *best, float *bu, float *bv) {
-    const double U = (double)cx * (double)by - (double)cy * (double)bx;
-    const double V = (double)ax * (double)cy - (double)ay * (double)cx;
-    const double W = (double)bx * (double)ay - (double)by * (double)ax;
-    if (!RAY_INSIDE(U, V, W, ax, ay, bx, by, cx, cy)) return 0;
-    const double det = U + V + W;
-    if (det == 0.0) return 0;
-    const double sz = (double)ray->sz;
-    const double T = U * (sz * (double)az) + V * (sz * (double)bz) + W * (sz * (double)cz);
-    float t = (float)(T / det);
-    if (!accept_hit_loading(vertices, i0, i1, i2, ray, *best, &t, own)) return 0;
-    *best = t;
-    *bu = (float)(V / det);
-    *bv = (float)(W / det);
-    return det > 0.0 ? 1 : -1;
+/* The watertight test with exact decisions (the default where the device has
+ * doubles). Woop, Benthin, Wald 2013, "Watertight Ray/Triangle Intersection",
+ * JCGT 2(1): translate to the origin, permute so that kz is the dominant axis,
+ * shear so that the ray is +z, then 2D edge functions; here the shear is
+ * taken times d_kz (make_ray): x = ez q_kx - ex q_kz, y = ez q_ky - ey q_kz for
+ * q = p - o, and then
+ *   U = x_c y_b - y_c x_b = ez e . (q_c x q_b)   (the Pluecker form)
+ *   T = U q_a,z + V q_b,z + W q_c,z = -ez^2 det[q_a, q_b, q_c]   (Cramer)
+ * with t = T / (det d_kz), det = U + V + W.
+ *
+ * Decisions exact (Shewchuk 1997, adaptive predicates): the signs of U, V, W
+ * and of T are those of the exact real numbers for the float32 vertices, the
+ * float32 origin and the traced direction. First in double from the float32
+ * inputs: q = p - o rounds at most once (relative 2^-53), and with |ex|,
+ * |ey| <= |ez| each computed edge function lies within 64 u ez^2 Q^2 (u =
+ * 2^-53, Q the largest |q| of the triangle) of the exact one, T within
+ * 2^-45 ez^2 Q^3 (derivation in lbvh.queries.exact; the bounds taken here are
+ * 2^-45 and 2^-42, 4x and 8x wider). A sign that its bound does not settle is
+ * computed exactly (exact.h: expansions of the multilinear forms in the input
+ * floats). Nothing underflows or overflows in double for float32 inputs, so
+ * the decisions are the exact ones at every scale.
+ *
+ * What follows: a ray hits a triangle by the exact test, whatever the order or
+ * winding of its corners and whatever power of two the scene is scaled by
+ * (within float32's range); a triangle whose corners are collinear (exactly)
+ * is never hit, since its edge functions are then all zero or of both signs;
+ * a shared edge is decided once for both triangles (watertight); t is >= 0
+ * exactly where the ray's origin is on the triangle's plane or in front of
+ * it, and exactly 0 where it is on the plane.
+ *
+ * t, u and v are computed in double from the same values by one formula that
+ * no order of the corners changes (sum3: the same terms, the same roundings),
+ * so they do not depend on the corners' order either, and scale with the
+ * scene bit for bit (t by the scale, u and v not at all) while t is a normal
+ * float32. Where the double t has the wrong sign (|t| below its rounding, the
+ * origin a hair off the plane) or rounds to 0 off the plane, t is the
+ * smallest float32 of the exact sign. */
+
+/* |x| for doubles without a library call (fabs is out of line on PoCL 3). */
+inline double abs64(double x) { return x < 0.0 ? -x : x; }
+
+/* a + b + c summed the same way for any order of the three and negated
+ * exactly for the negated three: the two smallest in magnitude first, or
+ * where the two largest cancel, exactly the smallest. */
+inline double sum3(double a, double b, double c) {
+    double x = a, y = b, z = c, s;
+    if (abs64(x) > abs64(y)) { s = x; x = y; y = s; }
+    if (abs64(y) > abs64(z)) { s = y; y = z; z = s; }
+    if (abs64(x) > abs64(y)) { s = x; x = y; y = s; }
+    return y == -z ? x : (x + y) + z;
 }
 
-/* The watertight test of a `hard` ray (make_ray: a shear below float32's
- * normal range), all in double, with d as it is (ez = d_kz): the same
- * equations as hit_triangle, in a precision where nothing of float32 inputs
- * can overflow or underflow (|p| < 2^129, 2^-149 <= |d| < 2^61: products
- * stay within 2^-300 .. 2^400). A vertex exactly on the ray's line gets
- * exactly (0, 0) here too. The choice is the ray's, so every triangle of the
- * ray takes the same path and shared edges stay watertight. */
-inline int hit_triangle_hard(__global const float *vertices, int i0, int i1, int i2,
-                             const Ray *ray, float own, float *best, float *bu, float *bv) {
-    const int kx = ray->kx, ky = ray->ky, kz = ray->kz;
-    const double px = ray->px, py = ray->py, pz = ray->pz;
-    const double ex = ray->ex, ey = ray->ey, ez = ray->ez;
-    const double az = (double)vertices[i0 + kz] - pz;
-    const double bz = (double)vertices[i1 + kz] - pz;
-    const double cz = (double)vertices[i2 + kz] - pz;
-    const double ax = ((double)vertices[i0 + kx] - px) * ez - az * ex;
-    const double ay = ((double)vertices[i0 + ky] - py) * ez - az * ey;
-    const double bx = ((double)vertices[i1 + kx] - px) * ez - bz * ex;
-    const double by = ((double)vertices[i1 + ky] - py) * ez - bz * ey;
-    const double cx = ((double)vertices[i2 + kx] - px) * ez - cz * ex;
-    const double cy = ((double)vertices[i2 + ky] - py) * ez - cz * ey;
-    const double U = cx * by - cy * bx;
-    const double V = ax * cy - ay * cx;
-    const double W = bx * ay - by * ax;
-    if (!RAY_INSIDE(U, V, W, ax, ay, bx, by, cx, cy)) return 0;
-    const double det = U + V + W;
-    if (det == 0.0) return 0;
-    /* t = (U az + V bz + W cz) / (det d_kz) */
-    float t = (float)((U * az + V * bz + W * cz) / (det * ez));
-    if (!accept_hit_loading(vertices, i0, i1, i2, ray, *best, &t, own)) return 0;
-    *best = t;
-    *bu = (float)(V / det);
-    *bv = (float)(W / det);
-    return det > 0.0 ? 1 : -1;
+/* The exact sign of the edge function F = x_p y_r - y_p x_r of the corners p
+ * and r (unpermuted floats in the order kx, ky, kz): ez e . ((p - o) x (r - o))
+ * = ez (det[e, p, r] - det[e, p, o] - det[e, o, r]). */
+inline int exact_edge_sign(const Ray *ray, float p0, float p1, float p2, float r0, float r1,
+                           float r2) {
+    double h[EXPANSION_TERMS];
+    int m = 0;
+    const float e0 = ray->ex, e1 = ray->ey, e2 = ray->ez;
+    const float o0 = ray->px, o1 = ray->py, o2 = ray->pz;
+    expansion_add_det3(h, &m, 1.0, e0, e1, e2, p0, p1, p2, r0, r1, r2);
+    expansion_add_det3(h, &m, -1.0, e0, e1, e2, p0, p1, p2, o0, o1, o2);
+    expansion_add_det3(h, &m, -1.0, e0, e1, e2, o0, o1, o2, r0, r1, r2);
+    const int s = expansion_sign(h, m);
+    return e2 < 0.0f ? -s : s;
+}
+
+/* The exact sign of T = -ez^2 det[a - o, b - o, c - o], expanded
+ * multilinearly: det[a, b, c] - det[o, b, c] - det[a, o, c] - det[a, b, o]. */
+inline int exact_numerator_sign(const Ray *ray, float a0, float a1, float a2, float b0, float b1,
+                                float b2, float c0, float c1, float c2) {
+    double h[EXPANSION_TERMS];
+    int m = 0;
+    const float o0 = ray->px, o1 = ray->py, o2 = ray->pz;
+    expansion_add_det3(h, &m, 1.0, a0, a1, a2, b0, b1, b2, c0, c1, c2);
+    expansion_add_det3(h, &m, -1.0, o0, o1, o2, b0, b1, b2, c0, c1, c2);
+    expansion_add_det3(h, &m, -1.0, a0, a1, a2, o0, o1, o2, c0, c1, c2);
+    expansion_add_det3(h, &m, -1.0, a0, a1, a2, b0, b1, b2, o0, o1, o2);
+    return -expansion_sign(h, m);
+}
+
+#if EDGE_RULE
+/* EDGE_SIGN of the exact sheared corners: where F is exactly 0, the exact
+ * signs of y_p - y_r = ez (p_y - r_y) - ey (p_z - r_z), then of x_r - x_p (the
+ * origin cancels: four products of two floats). */
+inline int exact_ruled_sign(const Ray *ray, int f, float p0, float p1, float p2, float r0, float r1,
+                            float r2) {
+    if (f != 0) return f;
+    const float ex = ray->ex, ey = ray->ey, ez = ray->ez;
+    const int sy = exact_sign4(ez, p1, -ez, r1, -ey, p2, ey, r2);
+    if (sy != 0) return sy;
+    return exact_sign4(ez, r0, -ez, p0, -ex, r2, ex, p2);
 }
 #endif
 
-#if TRIANGLE_TEST == TEST_WATERTIGHT
-/* Woop, Benthin, Wald 2013, "Watertight Ray/Triangle Intersection", JCGT 2(1):
- * translate to the origin, permute and shear so that the ray is +z, then 2D
- * edge functions. An edge shared by two triangles is evaluated from the same
- * two vertices with the same operations, so a ray cannot slip between them.
- * The shear is taken times d_kz (make_ray): x = ez p_kx - ex p_kz instead of
- * p_kx - Sx p_kz (Woop's equations times ez, exact on the ray's line). */
 inline int hit_triangle(__global const float *vertices, int i0, int i1, int i2, const Ray *ray,
                         float own, float *best, float *bu, float *bv) {
-#ifdef WATERTIGHT_FP64
-    if (ray->hard) return hit_triangle_hard(vertices, i0, i1, i2, ray, own, best, bu, bv);
+    const int kx = ray->kx, ky = ray->ky, kz = ray->kz;
+    const float fax = vertices[i0 + kx], fay = vertices[i0 + ky], faz = vertices[i0 + kz];
+    const float fbx = vertices[i1 + kx], fby = vertices[i1 + ky], fbz = vertices[i1 + kz];
+    const float fcx = vertices[i2 + kx], fcy = vertices[i2 + ky], fcz = vertices[i2 + kz];
+    const double ox = ray->px, oy = ray->py, oz = ray->pz;
+    const double ex = ray->ex, ey = ray->ey, ez = ray->ez;
+    const double qax = (double)fax - ox, qay = (double)fay - oy, qaz = (double)faz - oz;
+    const double qbx = (double)fbx - ox, qby = (double)fby - oy, qbz = (double)fbz - oz;
+    const double qcx = (double)fcx - ox, qcy = (double)fcy - oy, qcz = (double)fcz - oz;
+    const double ax = qax * ez - qaz * ex, ay = qay * ez - qaz * ey;
+    const double bx = qbx * ez - qbz * ex, by = qby * ez - qbz * ey;
+    const double cx = qcx * ez - qcz * ex, cy = qcy * ez - qcz * ey;
+    double U = cx * by - cy * bx;
+    double V = ax * cy - ay * cx;
+    double W = bx * ay - by * ax;
+    double Q = abs64(qax);
+    Q = abs64(qay) > Q ? abs64(qay) : Q; Q = abs64(qaz) > Q ? abs64(qaz) : Q;
+    Q = abs64(qbx) > Q ? abs64(qbx) : Q; Q = abs64(qby) > Q ? abs64(qby) : Q;
+    Q = abs64(qbz) > Q ? abs64(qbz) : Q; Q = abs64(qcx) > Q ? abs64(qcx) : Q;
+    Q = abs64(qcy) > Q ? abs64(qcy) : Q; Q = abs64(qcz) > Q ? abs64(qcz) : Q;
+    const double ez2 = ez * ez;
+    const double bound = (ez2 * 0x1p-45) * Q * Q;
+    const int pos = (U > bound) | ((V > bound) << 1) | ((W > bound) << 2);
+    const int neg = (U < -bound) | ((V < -bound) << 1) | ((W < -bound) << 2);
+    if (pos != 0 && neg != 0) return 0;   /* two edges of certain opposite signs */
+    int s;   /* the sign U, V, W and det share */
+    if (pos == 7) {
+        s = 1;
+    } else if (neg == 7) {
+        s = -1;
+    } else {
+        /* the settled signs, and the others exactly */
+#define SETTLED(bit, p0, p1, p2, r0, r1, r2) \
+    ((pos & (bit)) ? 1 : ((neg & (bit)) ? -1 : exact_edge_sign(ray, p0, p1, p2, r0, r1, r2)))
+        const int su = SETTLED(1, fcx, fcy, fcz, fbx, fby, fbz);
+        const int sv = SETTLED(2, fax, fay, faz, fcx, fcy, fcz);
+        const int sw = SETTLED(4, fbx, fby, fbz, fax, fay, faz);
+#undef SETTLED
+#if EDGE_RULE
+        const int ru = exact_ruled_sign(ray, su, fcx, fcy, fcz, fbx, fby, fbz);
+        const int rv = exact_ruled_sign(ray, sv, fax, fay, faz, fcx, fcy, fcz);
+        const int rw = exact_ruled_sign(ray, sw, fbx, fby, fbz, fax, fay, faz);
+        if (!same_signs(ru, rv, rw)) return 0;
+        /* a ray through an edge or a vertex: det has the sign of the others */
+        if (su == 0 && sv == 0 && sw == 0) return 0;   /* in the plane, or collinear */
+        s = su + sv + sw > 0 ? 1 : -1;
+#else
+        if ((su < 0 || sv < 0 || sw < 0) && (su > 0 || sv > 0 || sw > 0)) return 0;
+        if (su == 0 && sv == 0 && sw == 0) return 0;   /* in the plane, or collinear */
+        s = su + sv + sw > 0 ? 1 : -1;
 #endif
+        /* An edge function the bound did not settle is noise of the size of its
+         * bound: where it is 0 or its double value has the wrong sign it counts 0
+         * in det, t, u and v, so that det sums values of one sign (a ray through
+         * a vertex gets t from the edges it does not touch). */
+        U = (su > 0) == (U > 0.0) && (su < 0) == (U < 0.0) ? U : 0.0;
+        V = (sv > 0) == (V > 0.0) && (sv < 0) == (V < 0.0) ? V : 0.0;
+        W = (sw > 0) == (W > 0.0) && (sw < 0) == (W < 0.0) ? W : 0.0;
+    }
+    const double det = sum3(U, V, W);
+    const double T = sum3(U * qaz, V * qbz, W * qcz);
+    const double tbound = (ez2 * 0x1p-42) * Q * Q * Q;
+    const int sT = T > tbound ? 1 : (T < -tbound ? -1 :
+                   exact_numerator_sign(ray, fax, fay, faz, fbx, fby, fbz, fcx, fcy, fcz));
+    const float dkz = axis(ray->dx, ray->dy, ray->dz, kz);
+    const int st = dkz < 0.0f ? -(sT * s) : sT * s;   /* the exact sign of t */
+    /* det = 0: every edge function was noise (the ray in the triangle's plane
+     * to rounding); t then has its exact sign and accept_hit raises it to the
+     * triangle's box entry */
+    float t = det != 0.0 ? (float)abs64(T / (det * (double)dkz)) : 0.0f;
+    if (st == 0) t = 0.0f;
+    else {
+        if (t == 0.0f) t = 0x1p-149f;
+        if (st < 0) t = -t;
+    }
+    if (!accept_hit_loading(vertices, i0, i1, i2, ray, *best, &t, own)) return 0;
+    *best = t;
+    *bu = det != 0.0 ? (float)(V / det) : 0.0f;
+    *bv = det != 0.0 ? (float)(W / det) : 0.0f;
+    return s;
+}
+
+#elif TRIANGLE_TEST == TEST_WATERTIGHT
+/* Woop, Benthin, Wald 2013, in float32 only (devices without doubles, or
+ * NO_FP64): watertight, but its decisions are the rounded ones (they may
+ * change with the corners' order on slivers and underflow on tiny scenes). */
+inline int hit_triangle(__global const float *vertices, int i0, int i1, int i2, const Ray *ray,
+                        float own, float *best, float *bu, float *bv) {
     const int kx = ray->kx, ky = ray->ky, kz = ray->kz;
     const float ex = ray->ex, ey = ray->ey, ez = ray->ez;
     const float az = vertices[i0 + kz] - ray->pz;
@@ -475,30 +614,7 @@ inline int hit_triangle(__global const float *vertices, int i0, int i1, int i2, 
     const float W = bx * ay - by * ax;
     const float det = U + V + W;
     const float T = U * (ray->sz * az) + V * (ray->sz * bz) + W * (ray->sz * cz);
-#ifdef WATERTIGHT_FP64
-    /* Section 3.3: an edge function that rounds to zero is recomputed in
-     * double, where products of floats are exact and its sign is right. The
-     * same is done when a float32 product leaves float32's normal range
-     * (triangles ~1e19 or ~1e-19 in size around the ray: overflow, or
-     * denormals that lose digits): then the whole test runs in double and
-     * only t, u, v return to float. */
-    if (abs_bits(U) < FLT_MIN || abs_bits(V) < FLT_MIN || abs_bits(W) < FLT_MIN ||
-        !(abs_bits(det) >= FLT_MIN && abs_bits(det) <= FLT_MAX) ||
-        !(abs_bits(T) >= FLT_MIN && abs_bits(T) <= FLT_MAX))
-        return hit_triangle_fp64(vertices, i0, i1, i2, ray, ax, ay, az, bx, by, bz, cx, cy, cz,
-                                 own, best, bu, bv);
-#endif
-#ifdef WATERTIGHT_FP64
-    /* Past the fallback, U, V and W are normal floats, none of them 0: neither
-     * rule's tie-break (EDGE_SIGN) can apply, and RAY_INSIDE is true exactly
-     * where the three have one sign. The same answers in a third of the
-     * operations: count_hits 1.04x (bunny), 1.03x (Sponza, terrain-1m),
-     * closest and any hits unchanged (0.995-1.02x). */
-    if (!(((U > 0.0f) & (V > 0.0f) & (W > 0.0f)) | ((U < 0.0f) & (V < 0.0f) & (W < 0.0f))))
-        return 0;
-#else
     if (!RAY_INSIDE(U, V, W, ax, ay, bx, by, cx, cy)) return 0;
-#endif
     if (det == 0.0f) return 0;
     float t = T / det;
     if (!accept_hit(vertices, i0, i1, i2, ray, *best, &t, own, pax, pbx, pcx, pay, pby, pcy, az,

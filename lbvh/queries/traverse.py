@@ -59,6 +59,7 @@ from .. import device as dev
 from .rays import (DEVICE_KERNEL_FILE, DeviceRays, InvalidRays, Rays, check_invalid_rays, check_rays,
                    device_array_rays, device_invalid, host_array, is_device_array,
                    mark_invalid, read_device_rays, upload_rays)
+from .exact import collinear
 from .ray_order import ray_order, worth_ordering
 from ..tree import Mesh, Tree
 from .target import QueryTarget
@@ -71,7 +72,7 @@ __all__ = ["Hits", "DeviceHitArrays", "DeviceHits", "Rays", "DeviceRays", "check
            "upload_rays", "intersect", "occluded", "intersect_async", "occluded_async",
            "geometric_normals", "trace_buffers", "read_hits", "stack_need", "stack_size_for",
            "order_faces", "order_triangles", "order_triangles_numpy", "degenerate_triangles",
-           "DEGENERATE_SINE", "FLAG_OVERFLOW",
+           "FLAG_OVERFLOW",
            "FLAG_VISIT_LIMIT", "FLAG_NAN_RAY", "STACK_BUCKETS"]
 
 #: Bits of the per-ray flag word written by the kernel.
@@ -384,30 +385,13 @@ def order_faces(tree: Tree, mesh: Mesh) -> cl.Buffer:
     return out
 
 
-#: Sine of the angle between two edges below which a triangle is degenerate (zero area:
-#: never hit), kernels/ray_triangle.h ``DEGENERATE_SINE2`` squared.
-DEGENERATE_SINE = 2.0 ** -20
-
-
-def degenerate_triangles(vertices: np.ndarray, faces: np.ndarray, dtype=np.float64) -> np.ndarray:
-    """``bool (F,)``: zero-area triangles, as the kernel decides it (in ``dtype``).
-
-    ``|e1 x e2| <= 2^-20 |e1| |e2|`` with ``e1 = p1 - p0``, ``e2 = p2 - p0``
-    each scaled to a largest component of 1; an edge of length zero is
-    degenerate. Same operations, same order as ``degenerate()`` in the kernel.
-    """
-    p = vertices[faces].astype(dtype) * dtype(0.5)  # halved: the edges cannot overflow
-    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-    s1, s2 = np.abs(e1).max(axis=1), np.abs(e2).max(axis=1)
-    zero = (s1 == 0) | (s2 == 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a, b = e1 / s1[:, None], e2 / s2[:, None]
-        n = np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                      a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
-        nn = (n[:, 0] * n[:, 0] + n[:, 1] * n[:, 1]) + n[:, 2] * n[:, 2]
-        aa = (a[:, 0] * a[:, 0] + a[:, 1] * a[:, 1]) + a[:, 2] * a[:, 2]
-        bb = (b[:, 0] * b[:, 0] + b[:, 1] * b[:, 1]) + b[:, 2] * b[:, 2]
-        return zero | (nn <= dtype(DEGENERATE_SINE) ** 2 * aa * bb)
+def degenerate_triangles(vertices: np.ndarray, faces: np.ndarray, dtype=None) -> np.ndarray:
+    """``bool (F,)``: zero-area triangles, which no ray hits: those whose corners lie
+    exactly on a line (repeated corners included), as the kernel decides it on a
+    device with doubles (kernels/ray_triangle.h ``degenerate``; twin
+    :func:`lbvh.queries.exact.collinear`). ``dtype`` is accepted for older callers
+    and ignored: the test is exact."""
+    return collinear(vertices, faces)
 
 
 def order_triangles(tree: Tree, mesh: Mesh) -> cl.Buffer:
@@ -430,13 +414,13 @@ def order_triangles(tree: Tree, mesh: Mesh) -> cl.Buffer:
 def order_triangles_numpy(vertices: np.ndarray, faces: np.ndarray,
                           prim_order: np.ndarray) -> np.ndarray:
     """Twin of :func:`order_triangles`: ``float32 (S, 3, 3)``, the same values (copies),
-    a degenerate triangle (:func:`degenerate_triangles` in
-    float32, the kernel's test) as its first corner three times."""
+    a degenerate triangle (:func:`degenerate_triangles`, the kernel's test) as its
+    first corner three times."""
     v = np.asarray(vertices, np.float32)
     slot_faces = np.asarray(faces)[np.asarray(prim_order)]
     out = v[slot_faces]
     with np.errstate(over="ignore", invalid="ignore"):   # edges past float32, as the kernel
-        point = degenerate_triangles(v, slot_faces, np.float32)
+        point = degenerate_triangles(v, slot_faces)
     out[point] = out[point][:, :1]
     return out
 

@@ -1,10 +1,11 @@
 """The float32 error bound on a hit's ``t``: one home for the checks, the tests and the benches.
 
-The traversal kernel computes ``t`` in float32 from coordinates relative to
-the ray's origin (kernels/traverse.cl: Woop, Benthin & Wald 2013, with the
-shear scaled by ``d_kz``). Each of its results carries a few roundings of
-unit roundoff ``U = 2^-24`` (Higham 2002, ch. 3) on quantities of the size of
-the coordinates it subtracts; dividing by the triangle's projected area
+The traversal kernel decides each hit exactly (kernels/ray_triangle.h) and
+computes ``t`` in double from the float32 inputs, rounding it once to float32
+(Woop, Benthin & Wald 2013, with the shear scaled by ``d_kz``); without doubles
+(``NO_FP64``) all in float32. Each of its results carries a few roundings of
+unit roundoff ``U = 2^-24`` at most (Higham 2002, ch. 3) on quantities of the
+size of the coordinates it subtracts; dividing by the triangle's projected area
 amplifies them by ``1 / |cos a|``, ``a`` the angle between the ray and the
 triangle's normal. So, against the float64 oracle's ``t_ref`` for the same
 triangle::
@@ -16,7 +17,9 @@ with ``T_BOUND = 16 U`` and ``s = (scene extent + largest origin component)
 builders bench floors it at ``1e-3`` on purpose, a stricter agreement test
 for grazing rays, and says so in its table.
 
-Below float32's normal range rounding is absolute: :data:`UNDERFLOW` is the
+Both sides scale with the scene: scaled by a power of two, ``t``, ``t_ref`` and
+``s`` scale alike (the kernel's ``t`` bit for bit), so the bound holds at every
+scale while ``t`` is a normal float32. Below float32's normal range rounding is absolute: :data:`UNDERFLOW` is the
 floor the finer, per-pair analysis of :mod:`lbvh.verification.error_analysis`
 adds (that analysis, which ``lbvh check`` judges by, uses the same ``T_BOUND``
 with each pair's own size and conditioning: its module docstring says how the

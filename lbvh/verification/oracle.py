@@ -16,20 +16,19 @@ it (a ray along an edge is then in the triangle's plane: ``det = 0``, a miss).
     (relative to the coordinates) of a triangle's edge.
 
 ``dtype=np.float32`` (the kernel's twin)
-    The same operations in the same order as ``kernels/traverse.cl`` with its
-    default watertight test (including the float64 recomputation of an edge
-    function that rounds to zero, the whole test in float64 for rays whose
-    shear lies below float32's range, the direction scaled by ``2^-texp``,
-    and accept_hit's rule: a hit counts only where the ray enters the
-    triangle's own box by the slab test, its ``t`` raised to that box's
-    entry): for the triangle the kernel reports, its ``t, u, v`` equal the
-    twin's bit for bit on a device with correctly rounded division.
+    The kernel's default watertight test on a device with doubles
+    (kernels/ray_triangle.h): each edge function's sign and the sign of ``t``
+    exact (double with an error bound, exact integers where the bound does
+    not settle it: :mod:`lbvh.queries.exact`), ``t, u, v`` from the same
+    double formula, the direction scaled by ``2^-texp``, and accept_hit's
+    rule: a hit counts only where the ray enters the triangle's own box by
+    the slab test, its ``t`` raised to that box's entry. For the triangle the
+    kernel reports, its ``t, u, v`` equal the twin's bit for bit.
 
 Zero-area triangles are never hit, in both precisions and in the kernel: a
-triangle is degenerate when ``|e1 x e2| <= 2^-20 |e1| |e2|`` (see
-:func:`degenerate_triangles`), which catches repeated vertices and vertices
-collinear up to rounding; the Woop test alone would let rays through the
-line of a collinear triangle hit it.
+triangle is degenerate when its corners are exactly collinear (see
+:func:`degenerate_triangles`); the float64 Woop test alone would let rays
+through the line of a collinear triangle hit it after rounding.
 
 By default (``cull=True``) ray-triangle pairs whose triangle lies in a block
 of 16 triangles whose box (padded by ``1e-6`` of the scene's scale) the ray
@@ -50,7 +49,8 @@ import numpy as np
 from ..mesh import as_faces, as_vertices
 from ..queries.all_hits import AllHits
 # the kernel's degenerate test and its twin live with the walks that read it
-from ..queries.traverse import DEGENERATE_SINE, Hits, check_rays, degenerate_triangles
+from ..queries import exact
+from ..queries.traverse import Hits, check_rays, degenerate_triangles
 #: Triangles per culling block, and the blocks' padding relative to the scene's scale.
 BLOCK_SIZE = 16
 BLOCK_PADDING = 1e-6
@@ -177,78 +177,55 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
     o = rays.o_perm[ray]
     ex, ey, ez = (rays.shear[ray, k] for k in range(3))
     sz = rays.sz[ray]
-    x, y, z, rel64 = [], [], [], []
-    for corner in range(3):
-        vid = f[tri, corner]
-        p = [v[vid, axes[:, k]] for k in range(3)]
-        with np.errstate(over="ignore", under="ignore", invalid="ignore"):
-            # float32 may overflow here as the kernel's float test does (its double
-            # fallback then decides)
-            rel = [p[k].astype(dtype) - o[:, k] for k in range(3)]
+    if dtype == np.float32:
+        t, bu, bv, sign, inside = _exact_pairs(v, f, rays, ray, tri, axes, o, edge_rule)
+    else:
+        x, y, z = [], [], []
+        for corner in range(3):
+            vid = f[tri, corner]
+            rel = [v[vid, axes[:, k]].astype(dtype) - o[:, k] for k in range(3)]
             z.append(rel[2])
             x.append(rel[0] * ez - rel[2] * ex)
             y.append(rel[1] * ez - rel[2] * ey)
-        rel64.append(p)
-    (ax, bx, cx), (ay, by, cy) = x, y
+        (ax, bx, cx), (ay, by, cy) = x, y
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
+            U = cx * by - cy * bx
+            V = ax * cy - ay * cx
+            W = bx * ay - by * ax
+            det = U + V + W
+            T = U * (sz * z[0]) + V * (sz * z[1]) + W * (sz * z[2])
+            inside = _inside(U, V, W, ax, ay, bx, by, cx, cy, edge_rule) & (det != 0)
+            t = T / det
+            bu = V / det
+            bv = W / det
+            sign = np.sign(det)
+            if dtype == np.float64:
+                # where a sign is within float64's rounding (a ray through an edge or a
+                # vertex, an origin on the plane), decide it in exact rational arithmetic
+                q = np.abs(np.stack([*x, *y, *z], axis=1))
+                Q = np.abs(np.stack([v[f[tri, c], axes[:, k]].astype(np.float64) - o[:, k]
+                                     for c in range(3) for k in range(3)], axis=1)).max(axis=1)
+                ez2 = ez.astype(np.float64) ** 2
+                near = ((np.minimum(np.minimum(np.abs(U), np.abs(V)), np.abs(W))
+                         <= 2.0 ** -40 * ez2 * Q * Q)
+                        | (np.abs(U * z[0] + V * z[1] + W * z[2]) <= 2.0 ** -38 * ez2 * Q ** 3))
+                near &= np.isfinite(q).all(axis=1)
+                for k in np.flatnonzero(near):
+                    hit, tk, sk = exact_pair(v[f[tri[k]]], rays.origin[ray[k]],
+                                             rays.direction[ray[k]],
+                                             *((axes[k], rays.shear[ray[k]]) if edge_rule
+                                               else ()))
+                    inside[k], sign[k] = hit, sk
+                    if hit:
+                        t[k] = float(tk)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
-        U = cx * by - cy * bx
-        V = ax * cy - ay * cx
-        W = bx * ay - by * ax
-        det = U + V + W
-        T = U * (sz * z[0]) + V * (sz * z[1]) + W * (sz * z[2])
-        inside = _inside(U, V, W, ax, ay, bx, by, cx, cy, edge_rule) & (det != 0)
-        t = T / det
-        bu = V / det
-        bv = W / det
-        sign = np.sign(det)
         if dtype == np.float32:
-            # The kernel redoes the test in double when an edge function rounds
-            # to zero or a product leaves float32's normal range; only t, u, v go back.
-            big = np.float32(np.finfo(np.float32).max)
-            tiny = np.float32(np.finfo(np.float32).tiny)
-            redo = ((np.abs(U) < tiny) | (np.abs(V) < tiny) | (np.abs(W) < tiny)
-                    | ~((np.abs(det) >= tiny) & (np.abs(det) <= big))
-                    | ~((np.abs(T) >= tiny) & (np.abs(T) <= big)))
-            redo &= ~rays.hard[ray]
-            if redo.any():
-                d = [q[redo].astype(np.float64) for q in (ax, ay, bx, by, cx, cy)]
-                zd = [q[redo].astype(np.float64) for q in z]
-                Ud = d[4] * d[3] - d[5] * d[2]
-                Vd = d[0] * d[5] - d[1] * d[4]
-                Wd = d[2] * d[1] - d[3] * d[0]
-                detd = Ud + Vd + Wd
-                szd = sz[redo].astype(np.float64)
-                Td = Ud * (szd * zd[0]) + Vd * (szd * zd[1]) + Wd * (szd * zd[2])
-                inside[redo] = _inside(Ud, Vd, Wd, *d, edge_rule) & (detd != 0)
-                t[redo] = (Td / detd).astype(np.float32)
-                bu[redo] = (Vd / detd).astype(np.float32)
-                bv[redo] = (Wd / detd).astype(np.float32)
-                sign[redo] = np.sign(detd)
-            hard = rays.hard[ray]
-            if hard.any():
-                # hit_triangle_hard: the whole test in double, d as it is (e = 0)
-                h = np.flatnonzero(hard)
-                od = o[h].astype(np.float64)
-                exd, eyd, ezd = (q[h].astype(np.float64) for q in (ex, ey, ez))
-                xs, ys, zs = [], [], []
-                for p in rel64:
-                    r = [p[k][h].astype(np.float64) - od[:, k] for k in range(3)]
-                    zs.append(r[2])
-                    xs.append(r[0] * ezd - r[2] * exd)
-                    ys.append(r[1] * ezd - r[2] * eyd)
-                Uh = xs[2] * ys[1] - ys[2] * xs[1]
-                Vh = xs[0] * ys[2] - ys[0] * xs[2]
-                Wh = xs[1] * ys[0] - ys[1] * xs[0]
-                deth = Uh + Vh + Wh
-                inside[h] = _inside(Uh, Vh, Wh, xs[0], ys[0], xs[1], ys[1], xs[2], ys[2],
-                                    edge_rule) & (deth != 0)
-                t[h] = ((Uh * zs[0] + Vh * zs[1] + Wh * zs[2]) / (deth * ezd)).astype(np.float32)
-                bu[h] = (Vh / deth).astype(np.float32)
-                bv[h] = (Wh / deth).astype(np.float32)
-                sign[h] = np.sign(deth)
             # accept_hit takes a t below its best, INFINITY at most: a t that
             # overflows along d * 2^-texp is no hit
             inside &= _own_box(v, f, rays, ray, tri, t) & (t < np.inf)
+            # accept_hit decides tmin on t along d * 2^-texp: a t of the wrong side that
+            # rounds to -0 once scaled back is still no hit
+            inside &= t >= rays.tmin_traced[ray]
             # t was measured along d * 2^-texp; undone it may overflow to inf, as the
             # kernel's does (keep_hit), and stays a hit, as the float64 oracle's
             with np.errstate(over="ignore"):
@@ -256,6 +233,119 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
     inside &= ~skip[tri]
     # a miss is NaN: no comparison takes it, where inf may be a hit's t
     return np.where(inside, t, np.nan), bu, bv, sign
+
+
+def exact_pair(corners: np.ndarray, origin: np.ndarray, direction: np.ndarray,
+               axes: np.ndarray | None = None, shear: np.ndarray | None = None):
+    """One ray against one triangle in exact rational arithmetic on the float32 inputs:
+    ``(inside, t, sign)``: whether the ray's line crosses the triangle (edge functions
+    ``d . ((p - o) x (r - o))`` with no two of opposite signs, not all zero), its
+    exact ``t`` (a ``Fraction``, of any sign) and the sign of det (+1 where the ray
+    enters the front). The reference of :mod:`tests.queries.test_invariance`.
+
+    With ``axes`` (kx, ky, kz) and ``shear`` (ex, ey, ez), EDGE_RULE: an edge function
+    that is exactly 0 takes the sign of ``y_p - y_r``, then of ``x_r - x_p``, of the
+    exactly sheared corners (kernels/ray_triangle.h), and the ray is inside where
+    the three signs are one."""
+    from fractions import Fraction
+    a, b, c = ([Fraction(float(x)) for x in np.asarray(p, np.float32)] for p in corners)
+    o = [Fraction(float(x)) for x in np.asarray(origin, np.float32)]
+    d = [Fraction(float(x)) for x in np.asarray(direction, np.float32)]
+    q = [[p[i] - o[i] for i in range(3)] for p in (a, b, c)]
+
+    def cross(x, y):
+        return [x[1] * y[2] - x[2] * y[1], x[2] * y[0] - x[0] * y[2], x[0] * y[1] - x[1] * y[0]]
+
+    def dot(x, y):
+        return sum(i * j for i, j in zip(x, y))
+    e = [dot(d, cross(q[2], q[1])), dot(d, cross(q[0], q[2])), dot(d, cross(q[1], q[0]))]
+    n = cross([b[i] - a[i] for i in range(3)], [c[i] - a[i] for i in range(3)])
+    nd = dot(n, d)
+    if all(x == 0 for x in e) or nd == 0:
+        return False, Fraction(0), 0
+    if axes is None:
+        if min(e) < 0 < max(e):
+            return False, Fraction(0), 0
+    else:
+        kx, ky, kz = (int(k) for k in axes)
+        ex, ey, ez = (Fraction(float(x)) for x in shear)
+
+        def ruled(f, p, r):
+            if f != 0:
+                return (f > 0) - (f < 0)
+            y = ez * (p[ky] - r[ky]) - ey * (p[kz] - r[kz])
+            if y != 0:
+                return (y > 0) - (y < 0)
+            x = ez * (r[kx] - p[kx]) - ex * (r[kz] - p[kz])
+            return (x > 0) - (x < 0)
+        signs = {ruled(e[0], c, b), ruled(e[1], a, c), ruled(e[2], b, a)}
+        if len(signs) != 1 or 0 in signs:
+            return False, Fraction(0), 0
+    return True, dot(n, q[0]) / nd, (1 if nd < 0 else -1)
+
+
+def _exact_pairs(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: np.ndarray,
+                 axes: np.ndarray, o: np.ndarray, edge_rule: bool):
+    """hit_triangle of kernels/ray_triangle.h on a device with doubles, for the pairs
+    (``ray[k]``, ``tri[k]``): ``t`` (float32, along d * 2^-texp), ``u``, ``v``, the sign
+    of det and whether the ray is inside (before accept_hit). Double stage and
+    exact signs as :mod:`lbvh.queries.exact` says; the same operations in the same
+    order as the kernel, so the same bits."""
+    e32 = rays.shear[ray].astype(np.float32)
+    ex, ey, ez = (e32[:, k].astype(np.float64) for k in range(3))
+    o64 = o.astype(np.float64)
+    corners = [np.stack([v[f[tri, c], axes[:, k]] for k in range(3)], axis=1).astype(np.float32)
+               for c in range(3)]
+    q = [p.astype(np.float64) - o64 for p in corners]
+    X = [qq[:, 0] * ez - qq[:, 2] * ex for qq in q]
+    Y = [qq[:, 1] * ez - qq[:, 2] * ey for qq in q]
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        U = X[2] * Y[1] - Y[2] * X[1]
+        V = X[0] * Y[2] - Y[0] * X[2]
+        W = X[1] * Y[0] - Y[1] * X[0]
+        Q = np.abs(np.stack(q, axis=1)).reshape(len(ray), 9).max(axis=1)
+        ez2 = ez * ez
+        bound = ((ez2 * exact.BOUND_EDGE) * Q) * Q
+        F = np.stack([U, V, W], axis=1)
+        pos, neg = F > bound[:, None], F < -bound[:, None]
+        sign = np.where(pos, 1, np.where(neg, -1, 0)).astype(np.int64)
+        undecided = ~(pos | neg)
+        alive = ~(pos.any(axis=1) & neg.any(axis=1))
+        edges = ((2, 1), (0, 2), (1, 0))   # U: c x b, V: a x c, W: b x a
+        for j, (p_, r_) in enumerate(edges):
+            k = np.flatnonzero(undecided[:, j] & alive)
+            if len(k):
+                sign[k, j] = exact.edge_signs_exact(e32[k], o[k], corners[p_][k], corners[r_][k])
+        su, sv, sw = sign[:, 0], sign[:, 1], sign[:, 2]
+        if edge_rule:
+            ruled = [exact.ruled_signs_exact(sign[:, j], e32, corners[p_], corners[r_])
+                     if (sign[:, j] == 0).any() else sign[:, j]
+                     for j, (p_, r_) in enumerate(edges)]
+            inside = (ruled[0] == ruled[1]) & (ruled[1] == ruled[2]) & (ruled[0] != 0)
+        else:
+            inside = ~(((su < 0) | (sv < 0) | (sw < 0)) & ((su > 0) | (sv > 0) | (sw > 0)))
+        inside &= alive & ~((su == 0) & (sv == 0) & (sw == 0))
+        s = np.where(su + sv + sw > 0, 1, -1)
+        # an unsettled edge function whose double value is 0 or of the wrong sign counts 0
+        settled = ~undecided.any(axis=1)
+        U, V, W = (np.where(settled | ((F > 0) == (sg > 0)) & ((F < 0) == (sg < 0)), F, 0.0)
+                   for F, sg in ((U, su), (V, sv), (W, sw)))
+        det = exact.sum3(U, V, W)
+        T = exact.sum3(U * q[0][:, 2], V * q[1][:, 2], W * q[2][:, 2])
+        tbound = (((ez2 * exact.BOUND_NUMERATOR) * Q) * Q) * Q
+        sT = np.where(T > tbound, 1, np.where(T < -tbound, -1, 0)).astype(np.int64)
+        k = np.flatnonzero(inside & (np.abs(T) <= tbound))
+        if len(k):
+            sT[k] = exact.numerator_signs_exact(o[k], corners[0][k], corners[1][k],
+                                                corners[2][k])
+        dkz = rays.traced[ray, axes[:, 2]].astype(np.float32)
+        st = np.where(dkz < 0, -(sT * s), sT * s)
+        t = np.where(det != 0, np.abs(T / (det * dkz.astype(np.float64))), 0.0).astype(np.float32)
+        t = np.where((st != 0) & (t == 0), np.float32(2.0 ** -149), t)
+        t = np.where(st == 0, np.float32(0), np.where(st < 0, -t, t)).astype(np.float32)
+        bu = np.where(det != 0, V / det, 0.0).astype(np.float32)
+        bv = np.where(det != 0, W / det, 0.0).astype(np.float32)
+    return t, bu, bv, s, inside
 
 
 #: The slab test's factor on the far distance (SLAB_PAD in kernels/traverse.cl).

@@ -289,13 +289,15 @@ def test_a_ray_past_a_sliver_with_an_underflowing_shear_is_no_hit():
 def test_a_direction_component_whose_reciprocal_overflows_culls_no_box(case):
     # d_y = -1e-45: 1/d_y = -inf, and the slab test put the entry of a box whose
     # near y plane lies 1e-45 ahead at +inf: the ray reaches y = 0 at t = 1, at a
-    # vertex of triangle 0, but a tree that gave that triangle a leaf of its own
-    # culled it. The near planes now use -FLT_MAX (a lower bound of the entry).
+    # vertex of triangle 0 ("down"; on its edge x = 0 for "up", where it reaches
+    # z = 1e7 + 1e-38, exactly past the corner at 1e7 that the rounded test took),
+    # but a tree that gave that triangle a leaf of its own culled it. The near
+    # planes now use -FLT_MAX (a lower bound of the entry).
     if case == "down":
         v = np.float32([[1, 0, 0], [0, 0, 0], [0, -1, -1e30], [0, 0, 0], [0, 1, 0]])
         o, d = np.float32([[0, 1e-45, 1e7]]), np.float32([[0, -1e-45, -1e7]])
     else:
-        v = np.float32([[0, 0, 0], [0, 0, 1e7], [1e30, 0, 0], [0, 0, 0], [0, 1, 0]])
+        v = np.float32([[0, 0, 0], [0, 0, 2e7], [1e30, 0, 0], [0, 0, 0], [0, 1, 0]])
         o, d = np.float32([[0, 1e-45, 1e-38]]), np.float32([[0, -1e-45, 1e7]])
     f = np.uint32([[0, 1, 2], [0, 2, 4]])
     hits = _build(v, f, "lbvh30").intersect(o, d)
