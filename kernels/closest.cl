@@ -23,7 +23,10 @@
  * edges as segments (Ericson 5.1.2), so every candidate lies on the triangle
  * and a sliver whose face test cancels still gets its edges' distance; an
  * edge or face whose denominator is not positive (a triangle of zero area, two
- * of its vertices equal) is left to the segments, so nothing divides by zero. The
+ * of its vertices equal) is left to the segments, so nothing divides by zero.
+ * The corners are taken in one order whatever the mesh's (closest_sorted:
+ * ascending coordinates), so the point, its distance and the triangle chosen
+ * do not depend on the order or winding of the corners. The
  * arithmetic is double where the device has it (cl_khr_fp64): float32
  * coordinates and their squares then neither overflow nor underflow, and
  * the cancellation of the region tests stays far below float32's rounding of
@@ -95,8 +98,7 @@ typedef union { real4 h[2]; real s[8]; } real8_lanes;
         const real3 p1 = to_real3(load_float3(vertices, slot_faces[3 * s + 1]));          \
         const real3 p2 = to_real3(load_float3(vertices, slot_faces[3 * s + 2]));          \
         real v, w;                                                                         \
-        closest_on_triangle(p, p0, p1, p2, &v, &w);                                        \
-        const real d2 = length2(p - (p0 + v * (p1 - p0) + w * (p2 - p0)));                 \
+        const real d2 = closest_sorted(p, p0, p1, p2, &v, &w);                             \
         if (d2 < best2 || (best_slot < 0 && d2 <= best2)) {                                \
             best2 = d2;                                                                    \
             best_slot = s;                                                                 \
@@ -232,14 +234,15 @@ __kernel void closest_points(__global const float4 *nodes, __global const float 
         const real3 p0 = to_real3(load_float3(vertices, slot_faces[3 * best_slot]));
         const real3 p1 = to_real3(load_float3(vertices, slot_faces[3 * best_slot + 1]));
         const real3 p2 = to_real3(load_float3(vertices, slot_faces[3 * best_slot + 2]));
-        const real3 q = p0 + best_v * (p1 - p0) + best_w * (p2 - p0);
+        real u1, u2;
+        const real3 q = point_of_sorted(p0, p1, p2, best_v, best_w, &u1, &u2);
         distance[i] = (float)sqrt(best2);
         closest[3 * i] = (float)q.x;
         closest[3 * i + 1] = (float)q.y;
         closest[3 * i + 2] = (float)q.z;
         prim[i] = prim_order[best_slot];
-        bary[2 * i] = (float)best_v;
-        bary[2 * i + 1] = (float)best_w;
+        bary[2 * i] = (float)u1;
+        bary[2 * i + 1] = (float)u2;
     } else {
         distance[i] = INFINITY;
         store_float3(closest + 3 * i, (float3)(NAN, NAN, NAN));

@@ -92,6 +92,55 @@ inline void closest_on_triangle(real3 p, real3 a, real3 b, real3 c, real *out_v,
     *out_v = v; *out_w = w;
 }
 
+/* The corners of a triangle in one order, whatever order the mesh lists them
+ * in: ascending by x, then y, then z (three compare-exchanges, in place). The
+ * walks test a triangle and make its closest point from its corners in this
+ * order, so the point, its distance and the triangle chosen do not depend on
+ * the order of the corners or the winding (the arithmetic is the same, operation
+ * for operation); bary_of_sorted gives the barycentrics back in the mesh's order. */
+inline int corner_before(real3 a, real3 b) {
+    return a.x < b.x || (a.x == b.x && (a.y < b.y || (a.y == b.y && a.z < b.z)));
+}
+inline void sort_corners(real3 *a, real3 *b, real3 *c) {
+    real3 s;
+    if (corner_before(*b, *a)) { s = *a; *a = *b; *b = s; }
+    if (corner_before(*c, *b)) { s = *b; *b = *c; *c = s; }
+    if (corner_before(*b, *a)) { s = *a; *a = *b; *b = s; }
+}
+
+/* Which of the sorted corners s0, s1, s2 corner x is, among those not taken yet
+ * (bits of *taken): a corner repeated in the triangle takes one weight each. */
+inline int sorted_slot(real3 x, real3 s0, real3 s1, int *taken) {
+    int j = 2;
+    if (!(*taken & 1) && x.x == s0.x && x.y == s0.y && x.z == s0.z) j = 0;
+    else if (!(*taken & 2) && x.x == s1.x && x.y == s1.y && x.z == s1.z) j = 1;
+    *taken |= 1 << j;
+    return j;
+}
+
+/* The closest point q of triangle (p0, p1, p2) to p, as closest_on_triangle on the
+ * sorted corners, and its squared distance; (v, w) are the sorted corners'. */
+inline real closest_sorted(real3 p, real3 p0, real3 p1, real3 p2, real *v, real *w) {
+    sort_corners(&p0, &p1, &p2);
+    closest_on_triangle(p, p0, p1, p2, v, w);
+    return length2(p - (p0 + *v * (p1 - p0) + *w * (p2 - p0)));
+}
+
+/* The closest point from the sorted corners' (v, w) (closest_sorted), and the
+ * barycentrics of corners p1 and p2 in the mesh's order in *u1, *u2. */
+inline real3 point_of_sorted(real3 p0, real3 p1, real3 p2, real v, real w, real *u1, real *u2) {
+    real3 s0 = p0, s1 = p1, s2 = p2;
+    sort_corners(&s0, &s1, &s2);
+    /* the sorted corners' weights; rounding may take 1 - v - w below 0 where
+     * v + w is 1 */
+    const real u = 1 - v - w, weight[3] = {u > 0 ? u : 0, v, w};
+    int taken = 0;
+    (void)sorted_slot(p0, s0, s1, &taken);
+    *u1 = weight[sorted_slot(p1, s0, s1, &taken)];
+    *u2 = weight[sorted_slot(p2, s0, s1, &taken)];
+    return s0 + v * (s1 - s0) + w * (s2 - s0);
+}
+
 /* One step of the best-first walks: of children a and b with squared box distances
  * da and db, the nearer is next (*node, *node_d2) and the farther, if within best2,
  * is pushed with its distance; a push beyond STACK_SIZE sets FLAG_OVERFLOW in *flag

@@ -165,8 +165,7 @@ inline void walk_instance(__global const float4 *nodes, __global const float *ve
                     real3 p0, p1, p2;
                     world_triangle(x, vertices, slot_faces, s, &p0, &p1, &p2);
                     real v, w;
-                    closest_on_triangle(p, p0, p1, p2, &v, &w);
-                    const real d2 = length2(p - (p0 + v * (p1 - p0) + w * (p2 - p0)));
+                    const real d2 = closest_sorted(p, p0, p1, p2, &v, &w);
                     if (d2 < best->best2 || (best->slot < 0 && d2 <= best->best2)) {
                         best->best2 = d2; best->slot = s; best->inst = inst;
                         best->v = v; best->w = w;
@@ -249,15 +248,16 @@ __kernel void instance_closest(__global const float4 *top_nodes, __global const 
         load_placement(placements, best.inst, &x);
         real3 p0, p1, p2;
         world_triangle(&x, vertices, slot_faces, best.slot, &p0, &p1, &p2);
-        const real3 q = p0 + best.v * (p1 - p0) + best.w * (p2 - p0);
+        real u1, u2;
+        const real3 q = point_of_sorted(p0, p1, p2, best.v, best.w, &u1, &u2);
         distance[i] = (float)sqrt(best.best2);
         closest[3 * i] = (float)q.x;
         closest[3 * i + 1] = (float)q.y;
         closest[3 * i + 2] = (float)q.z;
         prim[i] = prim_order[best.slot];
         instance[i] = best.inst;
-        bary[2 * i] = (float)best.v;
-        bary[2 * i + 1] = (float)best.w;
+        bary[2 * i] = (float)u1;
+        bary[2 * i + 1] = (float)u2;
     } else {
         distance[i] = INFINITY;
         store_float3(closest + 3 * i, (float3)(NAN, NAN, NAN));
