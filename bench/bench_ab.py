@@ -1,0 +1,115 @@
+"""Ray queries of two checkouts in the same run: this one against another (``--other``).
+
+    .venv/bin/python bench/bench_ab.py --other /path/to/other/checkout
+        [--scenes bunny sponza terrain-1m] [--rays 1024x1024] [--rounds 4] [--repeats 3]
+
+lbvh cannot be imported twice in one process, so each round runs one worker
+process per checkout (in alternating order from round to round), each timing
+``bvh.intersect`` (closest hit) and ``bvh.occluded`` (any hit) through the public
+API on the default ``lbvh.build`` tree, on the bench camera's primary rays
+(``lbvh/data/cameras.json``), the median of ``--repeats`` calls after one untimed
+call. The report gives each checkout's median over the rounds and the ratio
+this / other (above 1: this checkout is slower), with the answers' agreement:
+the fraction of rays with the same answer (closest hit: the same triangle or
+miss; any hit: the same bool) and with the same bits (closest hit: ``t``).
+"""
+from __future__ import annotations
+
+import common  # noqa: F401  (sets the environment before numpy loads)
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+
+WORKER = r"""
+import sys, json, time
+sys.path.insert(0, sys.argv[1])
+import numpy as np
+import lbvh
+sys.path.insert(0, sys.argv[2])
+import common
+scene = common.load_bench_scene(sys.argv[3], tuple(map(int, sys.argv[4].split("x"))),
+                                common.load_cameras())
+o, d = scene.camera.rays()
+bvh = lbvh.build(scene.vertices, scene.faces)
+out = {}
+for name, fn in (("closest", bvh.intersect), ("any", bvh.occluded)):
+    fn(o, d)
+    times = []
+    for _ in range(int(sys.argv[5])):
+        t0 = time.perf_counter(); r = fn(o, d); times.append(time.perf_counter() - t0)
+    out[name] = sorted(times)[len(times) // 2]
+    res = r.t if name == "closest" else r
+    np.save(sys.argv[6] + f"-{name}.npy", res)
+    if name == "closest":
+        np.save(sys.argv[6] + "-prim.npy", r.prim)
+print(json.dumps(out))
+"""
+
+
+def run(checkout: Path, scene: str, rays: str, repeats: int, stem: str) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(checkout))
+    out = subprocess.run([sys.executable, "-c", WORKER, str(checkout), str(HERE), scene, rays,
+                          str(repeats), stem], capture_output=True, text=True, env=env,
+                         check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--other", type=Path, required=True)
+    p.add_argument("--scenes", nargs="+", default=["bunny", "sponza", "terrain-1m"])
+    p.add_argument("--rays", default="1024x1024")
+    p.add_argument("--rounds", type=int, default=4)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--out", type=Path, default=HERE / "out" / "ab")
+    args = p.parse_args(argv)
+    this = HERE.parent
+    lines = [f"# This checkout against {args.other}", "",
+             f"Command: `{common.command_line('bench_ab.py', argv)}`", "",
+             "| scene | query | this (ms) | other (ms) | this / other | same answers | "
+             "same bits |", "|---|---|---:|---:|---:|---:|---:|"]
+    report = []
+    tmp = Path(tempfile.mkdtemp())
+    for scene in args.scenes:
+        times = {"this": {"closest": [], "any": []}, "other": {"closest": [], "any": []}}
+        for r in range(args.rounds):
+            order = [("this", this), ("other", args.other)]
+            for who, path in (order if r % 2 == 0 else order[::-1]):
+                got = run(path, scene, args.rays, args.repeats, str(tmp / who))
+                for q in got:
+                    times[who][q].append(got[q])
+        for q in ("closest", "any"):
+            a, b = np.load(tmp / f"this-{q}.npy"), np.load(tmp / f"other-{q}.npy")
+            if q == "any":
+                same = bits = float(np.mean(a == b))
+            else:   # the same triangle (or miss); and t bit for bit
+                same = float(np.mean(np.load(tmp / "this-prim.npy")
+                                     == np.load(tmp / "other-prim.npy")))
+                bits = float(np.mean(a.view(np.uint32) == b.view(np.uint32)))
+            ta, tb = statistics.median(times["this"][q]), statistics.median(times["other"][q])
+            report.append({"scene": scene, "query": q, "this_s": ta, "other_s": tb,
+                           "ratio": ta / tb, "same_answers": same, "same_bits": bits,
+                           "rounds": {k: times[k][q] for k in times}})
+            lines.append(f"| {scene} | {q} | {1e3 * ta:.1f} | {1e3 * tb:.1f} | {ta / tb:.3f} | "
+                         f"{same:.5f} | {bits:.5f} |")
+            print(lines[-1], file=sys.stderr)
+    args.out.mkdir(parents=True, exist_ok=True)
+    common.write_report({"rows": report}, "\n".join(lines) + "\n",
+                        {"markdown": args.out / "bench_ab.md",
+                         "json": args.out / "bench_ab.json"},
+                        args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
