@@ -66,15 +66,15 @@ inline void expansion_add_det3(double *h, int *m, double s, float x0, float x1, 
     expansion_add_product3(h, m, -s, x2, y1, z0);
 }
 
-/* The sign of (x0 y1 - x1 y0) + (x1 y2 - x2 y1)... of any sum of four products
- * of two floats: s1 a b + s2 c d + s3 e f + s4 g h. */
-inline int exact_sign4(float a, float b, float c, float d, float e, float f, float g, float h2) {
+/* The exact sign of a b + c d + e f + g k, four products of two floats (a
+ * caller negates an input for a difference: negation is exact). */
+inline int exact_sign4(float a, float b, float c, float d, float e, float f, float g, float k) {
     double h[4];
     int m = 0;
     expansion_add(h, &m, (double)a * (double)b);
     expansion_add(h, &m, (double)c * (double)d);
     expansion_add(h, &m, (double)e * (double)f);
-    expansion_add(h, &m, (double)g * (double)h2);
+    expansion_add(h, &m, (double)g * (double)k);
     return expansion_sign(h, m);
 }
 

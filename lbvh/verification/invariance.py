@@ -33,9 +33,10 @@ __all__ = ["Rewrite", "REWRITES", "rewrites", "ray_sets", "sliver_soup", "differ
 
 @dataclass(frozen=True)
 class Rewrite:
-    """One rewriting: ``name``, the faces' order (``order[i]`` is the original face of
-    new face ``i``), the corner order applied to every face, and ``scale`` (a power
-    of two, the exponent)."""
+    """One rewriting: ``name``, the corner order applied to every face, whether the
+    faces are put in another order (the ``order`` given to :meth:`faces`: ``order[i]``
+    is the original face of new face ``i``), and ``scale`` (the exponent of a power
+    of two)."""
     name: str
     corners: tuple[int, int, int] = (0, 1, 2)
     permute: bool = False

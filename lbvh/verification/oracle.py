@@ -202,14 +202,14 @@ def _pair_hits(v: np.ndarray, f: np.ndarray, rays: _Rays, ray: np.ndarray, tri: 
             if dtype == np.float64:
                 # where a sign is within float64's rounding (a ray through an edge or a
                 # vertex, an origin on the plane), decide it in exact rational arithmetic
-                q = np.abs(np.stack([*x, *y, *z], axis=1))
+                finite = np.isfinite(np.stack([*x, *y, *z], axis=1)).all(axis=1)
                 Q = np.abs(np.stack([v[f[tri, c], axes[:, k]].astype(np.float64) - o[:, k]
                                      for c in range(3) for k in range(3)], axis=1)).max(axis=1)
                 ez2 = ez.astype(np.float64) ** 2
                 near = ((np.minimum(np.minimum(np.abs(U), np.abs(V)), np.abs(W))
                          <= 2.0 ** -40 * ez2 * Q * Q)
                         | (np.abs(U * z[0] + V * z[1] + W * z[2]) <= 2.0 ** -38 * ez2 * Q ** 3))
-                near &= np.isfinite(q).all(axis=1)
+                near &= finite
                 for k in np.flatnonzero(near):
                     hit, tk, sk = exact_pair(v[f[tri[k]]], rays.origin[ray[k]],
                                              rays.direction[ray[k]],
