@@ -36,11 +36,15 @@
 #define WIDTH 8
 #endif
 
-/* Surface area up to the factor 2, in float32 with no contraction: the numpy
- * twin computes the same bits, so both open the same lanes. */
-inline float half_area(__global const float *node) {
-    const float ex = node[4] - node[0], ey = node[5] - node[1], ez = node[6] - node[2];
-    return ex * ey + ey * ez + ez * ex;
+/* Surface area up to the factor 2, in float32 with no contraction, of the box
+ * with its coordinates times `scale` (common.h scaled_half_area; the host's
+ * box_scale of the root's box, a power of two): no area underflows or
+ * overflows, and a scene at any power-of-two scale opens the same lanes (a
+ * tiny scene's areas, underflowing to ties, opened others). The numpy twin
+ * computes the same bits, so both open the same lanes. */
+inline float half_area(__global const float *node, float scale) {
+    return scaled_half_area((float3)(node[0], node[1], node[2]),
+                            (float3)(node[4], node[5], node[6]), scale);
 }
 
 /* counters[0]: records so far; counters[1]: the deepest stack the traversal
@@ -50,6 +54,7 @@ inline float half_area(__global const float *node) {
  * records than `capacity` (not a tree: a cycle or a shared child). */
 __kernel void wide_level(__global const float *nodes, const int num_nodes,
                          const int begin, const int end, const int capacity, const int per_item,
+                         const float scale,
                          __global int *record_node, __global int *record_need,
                          __global int *record_base, __global int *lanes,
                          __global int *counters) {
@@ -71,7 +76,7 @@ __kernel void wide_level(__global const float *nodes, const int num_nodes,
             for (int c = 0; c < used; ++c) {
                 const int m = lane[c];
                 if (node_is_leaf(words[8 * m + 7])) continue;
-                const float area = half_area(nodes + 8 * m);
+                const float area = half_area(nodes + 8 * m, scale);
                 if (area > pick_area) { pick = c; pick_area = area; }
             }
             if (pick < 0) break;

@@ -30,7 +30,7 @@ import pyopencl as cl
 from .. import device as dev
 from ..tree import Tree
 from ..layout import NODE_DTYPE, children_of, is_leaf, node_depths
-from .cost import C_NODE, C_TRI, MAX_LEAF_SIZE
+from .cost import C_NODE, C_TRI, MAX_LEAF_SIZE, box_scale, scaled_half_area
 from .options import CollapseOptions
 from .refit import clear_arrivals
 from ..report import BuildReport
@@ -156,18 +156,6 @@ class CollapseResult:
     root: int
 
 
-def _box_scale(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """float32 (n, 1): 2**-e for the exponent of each box's largest |coordinate| (kernel box_scale)."""
-    m = np.maximum(np.abs(lo), np.abs(hi)).max(axis=1)
-    e = np.clip(((m.view(np.int32) >> 23) & 0xFF) - 126, -126, 126)
-    return ((127 - e) << 23).astype(np.int32).view(np.float32)[:, None]
-
-
-def _scaled_half_area(lo: np.ndarray, hi: np.ndarray, s: np.ndarray) -> np.ndarray:
-    d = hi * s - lo * s
-    return d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0]
-
-
 def collapse_numpy(nodes: np.ndarray, parent: np.ndarray, root: int, c_node: float = C_NODE,
                    c_tri: float = C_TRI, max_leaf_size: int = MAX_LEAF_SIZE) -> CollapseResult:
     """Numpy twin of :func:`collapse_leaves`: same float32 operations, level by level."""
@@ -186,12 +174,12 @@ def collapse_numpy(nodes: np.ndarray, parent: np.ndarray, root: int, c_node: flo
     levels = [internal[depth[internal] == d] for d in range(int(depth.max()) + 1)]
     for at in reversed(levels):
         left, right = children[at, 0], children[at, 1]
-        s = _box_scale(lo[at], hi[at])
-        an = _scaled_half_area(lo[at], hi[at], s)
+        s = box_scale(lo[at], hi[at])
+        an = scaled_half_area(lo[at], hi[at], s)
         has_area = an > 0
         safe = np.where(has_area, an, np.float32(1))
-        rl = np.where(has_area, _scaled_half_area(lo[left], hi[left], s) / safe, np.float32(1))
-        rr = np.where(has_area, _scaled_half_area(lo[right], hi[right], s) / safe, np.float32(1))
+        rl = np.where(has_area, scaled_half_area(lo[left], hi[left], s) / safe, np.float32(1))
+        rr = np.where(has_area, scaled_half_area(lo[right], hi[right], s) / safe, np.float32(1))
         first[at] = np.minimum(first[left], first[right])
         end[at] = np.maximum(end[left], end[right])
         count[at] = count[left] + count[right]

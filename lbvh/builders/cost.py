@@ -45,3 +45,24 @@ def box_area(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     d = np.asarray(upper, np.float64) - np.asarray(lower, np.float64)
     dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
     return 2.0 * (dx * dy + dy * dz + dz * dx)
+
+
+# -- the float32 areas the kernels compare (kernels/common.h box_scale, scaled_half_area)
+
+def box_scale(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """float32 ``(n, 1)``: ``2**-e`` for the exponent ``e`` of each box's largest
+    ``|coordinate|``, of boxes ``lo, hi`` ``(n, 3)`` (the twin of kernels/common.h
+    box_scale). A box times its scale has coordinates below 2 in magnitude: its area
+    neither underflows nor overflows float32, and the same box at any power-of-two scale
+    gives the same scaled coordinates."""
+    m = np.maximum(np.abs(lo), np.abs(hi)).max(axis=-1)
+    e = np.clip(((np.asarray(m, np.float32).view(np.int32) >> 23) & 0xFF) - 126, -126, 126)
+    return ((127 - e) << 23).astype(np.int32).view(np.float32)[..., None]
+
+
+def scaled_half_area(lo: np.ndarray, hi: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """float32 ``(...)``: half the surface area of each box ``lo, hi`` ``(..., 3)`` with its
+    coordinates times ``s`` (the twin of kernels/common.h scaled_half_area: the same
+    operations in the same order, so the same bits)."""
+    d = hi * s - lo * s
+    return d[..., 0] * d[..., 1] + d[..., 1] * d[..., 2] + d[..., 2] * d[..., 0]

@@ -24,7 +24,7 @@ import pyopencl as cl
 from ..device import Context, Scope, run
 from ..tree import Tree
 from ..layout import NODE_DTYPE
-from .cost import C_NODE, C_TRI
+from .cost import C_NODE, C_TRI, box_scale, scaled_half_area
 from .refit import clear_arrivals
 
 KERNEL_FILE = "restructure.cl"
@@ -146,18 +146,6 @@ def check_min_leaves(min_leaves: object) -> int:
 
 # -- pure Python twin ---------------------------------------------------------------
 
-def _box_scale(lo: np.ndarray, hi: np.ndarray) -> np.float32:
-    """Kernel box_scale (common.h): 2**-e for the exponent of the largest |coordinate|."""
-    m = np.float32(max(np.abs(lo).max(), np.abs(hi).max()))
-    e = min(max(int((m.view(np.int32) >> 23) & 0xFF) - 126, -126), 126)
-    return np.int32((127 - e) << 23).view(np.float32)
-
-
-def _half_area(lo: np.ndarray, hi: np.ndarray, s: np.float32) -> np.float32:
-    d = hi * s - lo * s
-    return d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
-
-
 class _Treelets:
     """Serial restructuring of one tree held in host arrays (modified in place)."""
 
@@ -166,7 +154,7 @@ class _Treelets:
         self.nodes, self.parent = nodes, parent
         self.leaves = check_treelet_leaves(leaves)
         self.lo, self.hi = nodes["lower"], nodes["upper"]
-        self.scale = _box_scale(self.lo[root], self.hi[root])
+        self.scale = box_scale(self.lo[root], self.hi[root])[0]
         self.c_node = np.float32(c_node)
         self.cost = np.zeros(len(nodes), np.float32)
         leaves = np.flatnonzero(nodes["b"] < 0)
@@ -176,7 +164,7 @@ class _Treelets:
                 self.cost[x] = np.float32(c_tri) * count * self.area(self.lo[x], self.hi[x])
 
     def area(self, lo: np.ndarray, hi: np.ndarray) -> np.float32:
-        return _half_area(lo, hi, self.scale)
+        return scaled_half_area(lo, hi, self.scale)
 
     def is_internal(self, x: int) -> bool:
         return self.nodes["b"][x] >= 0

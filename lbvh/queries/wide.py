@@ -34,6 +34,7 @@ import numpy as np
 import pyopencl as cl
 
 from .. import device as dev
+from ..builders.cost import box_scale, scaled_half_area
 from ..layout import is_leaf
 from ..tree import Tree
 
@@ -108,10 +109,11 @@ def _levels(tree: Tree, width: int, capacity: int) -> tuple[int, int, dict[str, 
     counters = np.int32([1, 0, _NO_BAD_NODE])
     cl.enqueue_copy(queue, bufs["counters"], counters, is_blocking=True)
     begin, end = 0, 1
+    scale = area_scale(*tree.root_box())
     while begin < end:
         launch = ctx.launch(end - begin, min_per_item=256, gpu_per_item=1)
         dev.run(ctx, KERNEL_FILE, "wide_level", launch, tree.nodes, tree.num_nodes, begin, end,
-                capacity, launch.per_item, bufs["node"], bufs["need"], bufs["base"],
+                capacity, launch.per_item, scale, bufs["node"], bufs["need"], bufs["base"],
                 bufs["lanes"], bufs["counters"], defines={"WIDTH": width})
         cl.enqueue_copy(queue, counters, bufs["counters"], is_blocking=True)
         if counters[2] != _NO_BAD_NODE:
@@ -213,9 +215,15 @@ class WideTwin:
     stack_need: int
 
 
-def _half_areas(nodes: np.ndarray) -> np.ndarray:
-    e = nodes["upper"] - nodes["lower"]   # float32, as kernels/wide.cl half_area
-    return e[:, 0] * e[:, 1] + e[:, 1] * e[:, 2] + e[:, 2] * e[:, 0]
+def area_scale(lower: np.ndarray, upper: np.ndarray) -> np.float32:
+    """The power of two kernels/wide.cl scales every box by before its area: common.h
+    box_scale of the root's box ``lower, upper`` (``float32 (3,)``)."""
+    return box_scale(np.float32(lower)[None], np.float32(upper)[None])[0, 0]
+
+
+def _half_areas(nodes: np.ndarray, scale: np.float32) -> np.ndarray:
+    """float32, as kernels/wide.cl half_area."""
+    return scaled_half_area(nodes["lower"], nodes["upper"], scale)
 
 
 def _open_lanes(lanes: np.ndarray, a: np.ndarray, b: np.ndarray, internal: np.ndarray,
@@ -240,7 +248,7 @@ def wide_numpy(nodes: np.ndarray, root: int, width: int) -> WideTwin:
     """The numpy twin of kernels/wide.cl for a tree given as ``NODE_DTYPE`` nodes."""
     a, b = nodes["a"], nodes["b"]
     internal = ~is_leaf(nodes)
-    area = _half_areas(nodes)
+    area = _half_areas(nodes, area_scale(nodes["lower"][root], nodes["upper"][root]))
     empty = np.zeros((0,), np.int32)
     if not internal[root]:
         return WideTwin(np.zeros((0, 8, width), np.float32), empty,

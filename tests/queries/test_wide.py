@@ -13,6 +13,7 @@ import pytest
 
 import lbvh
 from lbvh.layout import make_nodes
+from lbvh.verification import meshes
 from lbvh.queries import traverse as tr
 from lbvh.queries.wide import WIDTHS, read_records, wide_numpy
 from test_traverse import chain_tree, cyclic_tree, scene, tree
@@ -101,10 +102,29 @@ def test_the_largest_child_is_opened_first():
     twin = wide_numpy(nodes, 0, 4)
     assert twin.lanes.tolist() == [[3, 4, 5, 6]]
     # a three-lane step of the same rule, read off the twin's first opening
-    from lbvh.queries.wide import _half_areas, _open_lanes
+    from lbvh.queries.wide import _half_areas, _open_lanes, area_scale
     lanes = np.int32([[1, 2, -1]])
-    step = _open_lanes(lanes, nodes["a"], nodes["b"], nodes["b"] >= 0, _half_areas(nodes))
+    step = _open_lanes(lanes, nodes["a"], nodes["b"], nodes["b"] >= 0,
+                       _half_areas(nodes, area_scale(lower[0], upper[0])))
     assert step.tolist() == [[3, 4, 2]]
+
+
+@pytest.mark.parametrize("k", [-60, -40, 40])
+def test_a_scene_at_any_power_of_two_scale_opens_the_same_lanes(k):
+    """The boxes' areas are taken at the root's unit size (area_scale): a scene times
+    2^k gets the same records, on the device and in the twin. Unscaled, the areas of
+    this soup's nodes (a hundredth of its 0.01 extent) at 2^-60, below float32's normal
+    range, opened other lanes on the device."""
+    from lbvh.queries.winding_moments import read_lanes
+    v, f = meshes.soup(20000, 5, 0.02, spread="normal")
+    v = v * np.float32(0.01)
+    base = lbvh.build(v, f, builder="sah")
+    other = lbvh.build(np.ldexp(v, k).astype(np.float32), f, builder="sah")
+    assert np.array_equal(base.prim_order, other.prim_order)
+    a, b = base.wide_records(width=8), other.wide_records(width=8)
+    assert np.array_equal(read_lanes(base.ctx, a), read_lanes(other.ctx, b))
+    assert np.array_equal(wide_numpy(base.nodes, base.root, 8).lanes,
+                          wide_numpy(other.nodes, other.root, 8).lanes)
 
 
 def test_stack_need_is_the_deepest_sum_of_pushes():
