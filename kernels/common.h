@@ -103,6 +103,28 @@ inline float3 load_float3(__global const float *p, uint i) {
     return (float3)(p[3 * i], p[3 * i + 1], p[3 * i + 2]);
 }
 
+/* Which corner of a triangle is its least, ascending by x, then y, then z
+ * (0, 1 or 2), or -1 where two corners are the same point (equal coordinates,
+ * 0 and -0 alike). A triangle read from that corner on, in the mesh's cyclic
+ * order, is the same whatever corner the mesh lists first, and its mirror
+ * (winding reversed) differs only by its last two corners' swap: the winding
+ * walks (winding.cl, winding_moments.cl) read triangles so, with formulas
+ * symmetric in those two corners, so that a winding number does not depend on
+ * how the faces are written (and a face flipped negates its share exactly). */
+inline int float_corner_before(float3 a, float3 b) {
+    return a.x < b.x || (a.x == b.x && (a.y < b.y || (a.y == b.y && a.z < b.z)));
+}
+inline int float_corner_same(float3 a, float3 b) {
+    return a.x == b.x && a.y == b.y && a.z == b.z;
+}
+inline int least_corner(float3 a, float3 b, float3 c) {
+    if (float_corner_same(a, b) || float_corner_same(b, c) || float_corner_same(a, c))
+        return -1;
+    if (float_corner_before(b, a) && float_corner_before(b, c)) return 1;
+    if (float_corner_before(c, a) && float_corner_before(c, b)) return 2;
+    return 0;
+}
+
 inline void store_float3(__global float *p, float3 v) {
     p[0] = v.x;
     p[1] = v.y;

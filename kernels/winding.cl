@@ -60,18 +60,16 @@
  *                 their reference (root, root_y)); WIDTH=4 or 8 lanes.
  *   CLANG_PREFETCH=1  winding_packets asks a record it pushes into the cache
  *                 with clang's builtin (the host: where the compiler is clang).
- *   SCALED=1|2    every difference (a corner or a node's centre minus q) is
- *                 multiplied by `scale`, a power of two that brings the mesh to
- *                 about unit size, and the moments are the scaled mesh's
- *                 (winding_moments.py winding_scale): the triple products
- *                 (size^3) and second-order terms (size^4 times distance^3)
- *                 neither overflow nor underflow float32. 1 (a small mesh,
- *                 scale > 1) subtracts, then scales; 2 (a large one, scale < 1)
- *                 scales each side first, so that corners of opposite signs
- *                 near the float32 limit do not overflow. A scaled difference is
- *                 clamped to +-2^40, where a unit-size node's terms are 0 in
- *                 float32 (its r^2 stays finite). SCALED=0 (meshes of extent
- *                 2^-12 to 2^12) leaves the differences as they are.
+ *
+ * Scale: every length the walk sees is the mesh's times `scale`, a power of
+ * two that brings the mesh to unit size (winding_moments.py winding_scale):
+ * the points (scaled, and clamped to 2^40 of the mesh, on the host:
+ * winding.py unit_points), the nodes' centres and the corner rows (scaled
+ * where the moments are made), the vertices read from the mesh (scaled here,
+ * VDIFF). So the triple products (size^3) and second-order terms (size^4
+ * times distance^3) neither overflow nor underflow float32, and the same mesh
+ * and points at any other power-of-two scale give the walk the same floats:
+ * the same winding numbers, bit for bit (tests/queries/test_invariance.py).
  */
 #include "common.h"
 
@@ -97,18 +95,11 @@
 
 #define FLAG_OVERFLOW 1
 
-#ifndef SCALED
-#define SCALED 0
-#endif
-#define DIFF_LIMIT 1099511627776.0f   /* 2^40 */
-#define CLAMP_DIFF(d) ((d) > DIFF_LIMIT ? DIFF_LIMIT : ((d) < -DIFF_LIMIT ? -DIFF_LIMIT : (d)))
-#if SCALED == 1
-#define DIFF(a, b) CLAMP_DIFF(((a) - (b)) * scale)
-#elif SCALED == 2
-#define DIFF(a, b) CLAMP_DIFF((a) * scale - (b) * scale)
-#else
+/* Points, node centres and corner rows are all at the mesh's unit size (see
+ * the header: `scale`); a vertex read from the mesh is scaled here, by a power
+ * of two (exact). */
 #define DIFF(a, b) ((a) - (b))
-#endif
+#define VDIFF(v, b) ((v) * scale - (b))
 
 /* atan2(y, x) in float32 within 4e-7 of the exact angle (under 2 ulps of pi),
  * inline: PoCL 3 calls its atan2 out of line, and that call was two thirds of
@@ -142,16 +133,29 @@ inline float atan2_poly(float y, float x) {
  * the triangle's back, its vertices counterclockwise around the outward
  * normal), written out in scalars with the three lengths in one vector sqrt:
  * PoCL 3 called dot and sqrt out of line here (1.19x on Sponza written out;
- * bench/README.md). */
+ * bench/README.md). p0, p1, p2 are the mesh's vertices (scaled here), q a
+ * point at unit size. The corners are read from the least on (common.h
+ * least_corner), and the denominator is grouped symmetric in the last two
+ * (b, c): the same floats for any corner the mesh lists first, the numerator
+ * and so the angle negated exactly for the winding reversed; a triangle with
+ * two corners at one point adds 0. A point on the triangle's plane (a numerator
+ * of 0, either sign) gets 0, where atan2 would give +-2 pi by the zero's sign,
+ * which rounding sets, not the geometry: a point on a closed surface then has
+ * the mean of the two sides' winding numbers, 1/2, in every corner order. */
 inline float dot3(float3 u, float3 v) { return u.x * v.x + u.y * v.y + u.z * v.z; }
 inline float solid_angle(float3 q, float3 p0, float3 p1, float3 p2, float scale) {
-    const float3 a = DIFF(p0, q), b = DIFF(p1, q), c = DIFF(p2, q);
+    const int first = least_corner(p0, p1, p2);
+    if (first < 0) return 0.0f;
+    const float3 s0 = first == 0 ? p0 : (first == 1 ? p1 : p2);
+    const float3 s1 = first == 0 ? p1 : (first == 1 ? p2 : p0);
+    const float3 s2 = first == 0 ? p2 : (first == 1 ? p0 : p1);
+    const float3 a = VDIFF(s0, q), b = VDIFF(s1, q), c = VDIFF(s2, q);
     const float4 l = sqrt4((float4)(dot3(a, a), dot3(b, b), dot3(c, c), 0.0f));
     const float la = l.x, lb = l.y, lc = l.z;
     const float num = a.x * (b.y * c.z - b.z * c.y) + a.y * (b.z * c.x - b.x * c.z) +
                       a.z * (b.x * c.y - b.y * c.x);
-    const float den = la * lb * lc + dot3(a, b) * lc + dot3(a, c) * lb + dot3(b, c) * la;
-    return 2.0f * atan2_poly(num, den);
+    const float den = (la * (lb * lc) + dot3(b, c) * la) + (dot3(a, b) * lc + dot3(a, c) * lb);
+    return num == 0.0f ? 0.0f : 2.0f * atan2_poly(num, den);
 }
 
 /* A far node's expansion (Barill et al. 2018, section 3.2) at r = p - q, with
@@ -218,7 +222,9 @@ inline float solid_angle(float3 q, float3 p0, float3 p1, float3 p2, float scale)
     } while (0)
 
 /* solid_angle lane by lane, of the triangles whose corners minus q are a, b, c
- * (components of type T, integer vectors IT), into `out`. */
+ * (components of type T, integer vectors IT), into `out`: the same operations,
+ * the corners already in solid_angle's order (the corner rows are stored so:
+ * winding_moments.py lane_corners). */
 #define SOLID_ANGLES(T, IT, AS_T, AS_IT, SQRT, ax, ay, az, bx, by, bz, cx, cy, cz, out)   \
     T out;                                                                                 \
     do {                                                                                   \
@@ -228,10 +234,10 @@ inline float solid_angle(float3 q, float3 p0, float3 p1, float3 p2, float scale)
         const T la_ = SQRT(la2_), lb_ = SQRT(lb2_), lc_ = SQRT(lc2_);                      \
         const T num_ = ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) +               \
                        az * (bx * cy - by * cx);                                           \
-        const T den_ = la_ * lb_ * lc_ + (ax * bx + ay * by + az * bz) * lc_ +              \
-                       (ax * cx + ay * cy + az * cz) * lb_ + (bx * cx + by * cy + bz * cz) * la_; \
+        const T den_ = (la_ * (lb_ * lc_) + (bx * cx + by * cy + bz * cz) * la_) +           \
+                       ((ax * bx + ay * by + az * bz) * lc_ + (ax * cx + ay * cy + az * cz) * lb_); \
         ATAN2_LANES(T, IT, AS_T, AS_IT, num_, den_, half_);                                \
-        out = (T)(2.0f) * half_;                                                           \
+        out = AS_T(AS_IT((T)(2.0f) * half_) & (num_ != (T)(0.0f)));                        \
     } while (0)
 
 /* The exact solid angles of the triangles of slots [first, end), added to w. */
@@ -343,11 +349,16 @@ typedef union { floatp v; float s[PACKET]; } floatp_lanes;
 /* ... of the triangles of slots [first, end) */
 #define PACKET_LEAF(first, end, mask)                                                      \
     for (int s = (first); s < (end); ++s) {                                                \
-        const uint f0 = slot_faces[3 * s], f1 = slot_faces[3 * s + 1];                     \
-        const uint f2 = slot_faces[3 * s + 2];                                             \
-        PACKET_TRIANGLE(vertices[3 * f0], vertices[3 * f0 + 1], vertices[3 * f0 + 2],      \
-                        vertices[3 * f1], vertices[3 * f1 + 1], vertices[3 * f1 + 2],      \
-                        vertices[3 * f2], vertices[3 * f2 + 1], vertices[3 * f2 + 2], mask); \
+        const float3 c0 = load_float3(vertices, slot_faces[3 * s]);                        \
+        const float3 c1 = load_float3(vertices, slot_faces[3 * s + 1]);                    \
+        const float3 c2 = load_float3(vertices, slot_faces[3 * s + 2]);                    \
+        const int least = least_corner(c0, c1, c2);  /* solid_angle's order */             \
+        if (least < 0) continue;                                                           \
+        const float3 s0 = least == 0 ? c0 : (least == 1 ? c1 : c2);                        \
+        const float3 s1 = least == 0 ? c1 : (least == 1 ? c2 : c0);                        \
+        const float3 s2 = least == 0 ? c2 : (least == 1 ? c0 : c1);                        \
+        const float3 u0 = s0 * scale, u1 = s1 * scale, u2 = s2 * scale;                   \
+        PACKET_TRIANGLE(u0.x, u0.y, u0.z, u1.x, u1.y, u1.z, u2.x, u2.y, u2.z, mask);       \
     }
 #endif
 

@@ -21,7 +21,8 @@
  *   i = x, y, z within each pair jk of (xx, yy, zz, xy, xz, yz),
  *   Q = (sum_v v v^T + 9 c c^T) / 12, the mean of x x^T over the triangle.
  * As soon as a node's sums are known its ROWS floats are written from them
- * and its box, each a coefficient of winding.cl's FAR_TERM: the centre p, R^2,
+ * and its box, each a coefficient of winding.cl's FAR_TERM: the centre p (at
+ * the mesh's unit size, as every length: p + shift * scale), R^2,
  * N, of M = B - N p^T its trace and -3 times its symmetric pairs (M_jj,
  * M_jk + M_kj), and with ORDER=2 H_ijk = sum a_i Q_jk - B_ij p_k - B_ik p_j +
  * N_i p_j p_k contracted (g = -3/2 (2 u + t), u_k = H_iik, t_i = H_ijj; then the
@@ -35,8 +36,9 @@
  * it (lane_slots), instead of one row of ROWS floats per node; WIDTH (4 or 8)
  * with WIDE_OUT. A record's rows are the ROWS of its lanes' moments, then
  * CORNER_ROWS: the corners of the first triangle of each leaf lane (x, y, z
- * of its first corner, then the second, the third; the float32 vertices as
- * they are), zeros in the other lanes, which winding.cl sums lane by lane
+ * of its first corner, then the second, the third, from the least corner on
+ * (common.h least_corner); the float32 vertices times the scale), zeros in
+ * the other lanes, which winding.cl sums lane by lane
  * where the leaf is near (winding_moments.py lane_corners).
  */
 #include "common.h"
@@ -82,16 +84,32 @@ inline void corner(__global const float *vertices, uint v, const double *shift, 
     for (int j = 0; j < 3; ++j) x[j] = ((double)vertices[3 * v + j] - shift[j]) * scale;
 }
 
-/* The TERMS terms of triangle t, into out (winding_moments.py _triangle_terms). */
+/* Which corner of triangle t its walk starts from: its least (common.h
+ * least_corner), 0 where two corners are one point (a triangle of no area,
+ * whose terms are 0 from any corner). */
+inline int first_corner(__global const float *vertices, __global const uint *faces, int t) {
+    const int least = least_corner(load_float3(vertices, faces[3 * t]),
+                                   load_float3(vertices, faces[3 * t + 1]),
+                                   load_float3(vertices, faces[3 * t + 2]));
+    return least < 0 ? 0 : least;
+}
+
+/* The TERMS terms of triangle t, into out (winding_moments.py _triangle_terms),
+ * its corners read from the least on, and the centroid and Q summed symmetric
+ * in the last two: the same doubles for any corner the mesh lists first, the
+ * vector area (and so every term but the area's) negated exactly for the
+ * winding reversed. */
 inline void triangle_terms(__global const float *vertices, __global const uint *faces, int t,
                            const double *shift, double scale, double *out) {
     double x[3][3];
-    for (int k = 0; k < 3; ++k) corner(vertices, faces[3 * t + k], shift, scale, x[k]);
+    const int first = first_corner(vertices, faces, t);
+    for (int k = 0; k < 3; ++k)
+        corner(vertices, faces[3 * t + (first + k) % 3], shift, scale, x[k]);
     double e1[3], e2[3], a[3], c[3];
     for (int j = 0; j < 3; ++j) {
         e1[j] = x[1][j] - x[0][j];
         e2[j] = x[2][j] - x[0][j];
-        c[j] = (x[0][j] + x[1][j] + x[2][j]) / 3.0;
+        c[j] = (x[0][j] + (x[1][j] + x[2][j])) / 3.0;
     }
     a[0] = 0.5 * (e1[1] * e2[2] - e1[2] * e2[1]);
     a[1] = 0.5 * (e1[2] * e2[0] - e1[0] * e2[2]);
@@ -106,7 +124,7 @@ inline void triangle_terms(__global const float *vertices, __global const uint *
 #if ORDER == 2
     for (int m = 0; m < 6; ++m) {
         const int j = PAIR_J[m], k = PAIR_K[m];
-        const double q = (x[0][j] * x[0][k] + x[1][j] * x[1][k] + x[2][j] * x[2][k]
+        const double q = ((x[0][j] * x[0][k] + (x[1][j] * x[1][k] + x[2][j] * x[2][k]))
                           + 9.0 * c[j] * c[k]) / 12.0;
         for (int i = 0; i < 3; ++i) out[16 + 3 * m + i] = a[i] * q;
     }
@@ -160,7 +178,7 @@ inline void write_rows(__global const float *nodes, int node, const double *s,
         const double far = max_d(fabs(hi[j] - p[j]), fabs(p[j] - lo[j]));
         r2 = j == 0 ? far * far : r2 + far * far;
     }
-    for (int j = 0; j < 3; ++j) o[j * stride] = (float)(p[j] / scale + shift[j]);
+    for (int j = 0; j < 3; ++j) o[j * stride] = (float)(p[j] + shift[j] * scale);
     o[3 * stride] = (float)r2;
     o[(ROWS - 1) * stride] = (float)(area * r2 * sqrt(r2) / far_divisor);
     double m[3][3];   /* M = B - N p^T */
@@ -219,7 +237,7 @@ inline void store_rows(__global const float *nodes, __global const int *slot, in
  * an internal node (first < 0). */
 inline void store_corners(__global const float *vertices, __global const uint *faces,
                           __global const int *prim_order, __global const int *slot, int node,
-                          int first, __global float *out) {
+                          int first, float scale, __global float *out) {
 #if WIDE_OUT
     const int item = slot[node] - 1;
     if (item < 0) return;
@@ -230,9 +248,15 @@ inline void store_corners(__global const float *vertices, __global const uint *f
         return;
     }
     const int t = prim_order[first];
+    const float3 p0 = load_float3(vertices, faces[3 * t]);
+    const float3 p1 = load_float3(vertices, faces[3 * t + 1]);
+    const float3 p2 = load_float3(vertices, faces[3 * t + 2]);
+    const int least = least_corner(p0, p1, p2);
     for (int k = 0; k < 3; ++k) {
-        const uint v = faces[3 * t + k];
-        for (int j = 0; j < 3; ++j) o[(3 * k + j) * WIDTH] = vertices[3 * v + j];
+        /* from the least corner on; a triangle with two corners at one point: its
+         * first corner three times (whose solid angle is 0 exactly) */
+        const uint v = faces[3 * t + (least < 0 ? 0 : (least + k) % 3)];
+        for (int j = 0; j < 3; ++j) o[(3 * k + j) * WIDTH] = vertices[3 * v + j] * scale;
     }
 #endif
 }
@@ -280,7 +304,8 @@ __kernel void moments(__global const float *vertices, __global const uint *faces
         leaf_sums(vertices, faces, prim_order, words[8 * at + 3], -words[8 * at + 7], shift,
                   scale, s);
         store_rows(nodes, slot, at, s, shift, scale, far_divisor, out);
-        store_corners(vertices, faces, prim_order, slot, at, words[8 * at + 3], out);
+        store_corners(vertices, faces, prim_order, slot, at, words[8 * at + 3], (float)scale,
+                      out);
         for (;;) {
             const int p = parent[at];
             if (p < 0) break;
@@ -302,7 +327,7 @@ __kernel void moments(__global const float *vertices, __global const uint *faces
             }
             for (int i = 0; i < TERMS; ++i) sums[(long)TERMS * p + i] = s[i];
             store_rows(nodes, slot, p, s, shift, scale, far_divisor, out);
-            store_corners(vertices, faces, prim_order, slot, p, -1, out);
+            store_corners(vertices, faces, prim_order, slot, p, -1, (float)scale, out);
             at = p;
         }
     }

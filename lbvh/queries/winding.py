@@ -138,47 +138,43 @@ FLAG_OVERFLOW = 1
 _WORK_GROUP = 64
 
 
-#: kernels/winding.cl's ``SCALED`` values: no scale, a small mesh scaled up, a large one
-#: scaled down.
-SCALED_MODES = (0, 1, 2)
+#: How far from the mesh's box, in its unit-size lengths (``2^40`` times its extent),
+#: :func:`unit_points` moves a point to: there the far terms of a unit-size node
+#: (distance^3 times size^4) are 0 in float32 and its ``r^2`` stays finite, where a
+#: point 1e13 sizes away overflowed them to NaN.
+FAR_LIMIT = 2.0 ** 40
 
 
-#: Points farther than this many times the mesh's extent from its box are walked with
-#: the differences clamped (``SCALED=1``, at scale 1 for a mesh that needs none): a
-#: unit-size mesh's far terms (distance^3 times size^4) overflowed to NaN from about
-#: 1e13 of its size away.
-FAR_POINTS = 2.0 ** 20
+def unit_points(points: np.ndarray, scale: float, bounds: tuple[np.ndarray, np.ndarray],
+                points_range: tuple[float, float] | None = None) -> np.ndarray:
+    """``float32 (N, 3)``: checked ``points`` at the mesh's unit size, as
+    kernels/winding.cl walks them: times ``scale`` (the mesh's
+    :func:`~lbvh.queries.winding_moments.winding_scale`, a power of two: exact), each
+    coordinate clamped to within :data:`FAR_LIMIT` of the mesh's box ``bounds``
+    (lower, upper) at that size. The same points and mesh at another power-of-two scale
+    give the same floats. ``points_range`` (the least and the largest coordinate, as
+    :func:`~lbvh.queries.closest.check_points_range` gives them) lets the common case,
+    every point within reach, go by one float32 product (exact) or none (scale 1); a
+    point beyond goes through float64, so that nothing overflows."""
+    lo, hi = (np.asarray(b, np.float64) * scale for b in bounds)
+    p = np.asarray(points, np.float32)
+    if points_range is None:
+        points_range = (float(p.min()), float(p.max())) if p.size else (0.0, 0.0)
+    least, largest = points_range[0] * scale, points_range[1] * scale
+    if least >= float(lo.max()) - FAR_LIMIT and largest <= float(hi.min()) + FAR_LIMIT:
+        return p if scale == 1.0 else p * np.float32(scale)
+    q = np.clip(p.astype(np.float64) * scale, lo - FAR_LIMIT, hi + FAR_LIMIT)
+    return np.ascontiguousarray(q, dtype=np.float32)
 
 
-def scaled_mode(scale: float, points_range: tuple[float, float] | None = None,
-                bounds: tuple[np.ndarray, np.ndarray] | None = None) -> int:
-    """kernels/winding.cl's ``SCALED`` for a mesh of this
-    :func:`~lbvh.queries.winding_moments.winding_scale` and box ``bounds`` (lower,
-    upper), and for points whose coordinates all lie in ``points_range`` (least,
-    largest, over every axis: :func:`~lbvh.queries.closest.check_points_range`): 0 (as
-    they are), 1 (scaled up, or clamped only: a point may lie farther than
-    :data:`FAR_POINTS` extents from the box, judged from that range, which errs on the
-    side of the clamp) or 2 (scaled down)."""
-    if scale != 1.0:
-        return 1 if scale > 1.0 else 2
-    if points_range is None or bounds is None:
-        return 0
-    lo, hi = (np.asarray(b, np.float64) for b in bounds)
-    least, largest = points_range
-    reach = max(float((lo - least).max()), float((largest - hi).max()))
-    return 1 if reach > FAR_POINTS * max(float((hi - lo).max()), 2.0 ** -126) else 0
-
-
-def kernel_defines(ctx: dev.Context, scaled: int = 0) -> dict[str, int]:
+def kernel_defines(ctx: dev.Context) -> dict[str, int]:
     """kernels/winding.cl's choices: ``INLINE_SQRT`` where the compiler is clang's
     (kernels/common.h: its inline square root; 1.09x on Sponza's winding numbers,
     bench/README.md), and ``CLANG_PREFETCH`` (the packet walk's prefetch of the
     records it pushes; kernels/wide_rows.h); ``ORDER``, that of the moments the trees
-    keep (:data:`DEFAULT_ORDER`); ``SCALED`` (:func:`scaled_mode`)."""
-    if scaled not in SCALED_MODES:
-        raise ValueError(f"scaled: {scaled!r}; expected one of {SCALED_MODES}")
+    keep (:data:`DEFAULT_ORDER`)."""
     return {"INLINE_SQRT": int(ctx.compiler_is_clang), "ORDER": DEFAULT_ORDER,
-            "SCALED": int(scaled), "CLANG_PREFETCH": int(ctx.compiler_is_clang)}
+            "CLANG_PREFETCH": int(ctx.compiler_is_clang)}
 
 
 #: Points a work-item of kernels/winding.cl's packet walk (``winding_packets``) answers.
@@ -275,7 +271,9 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
     (records, root, root_y), defines = walk_of(target)
     bounds = target.mesh.bounds
     scale = scale_of_box(*bounds)
-    defines = {**defines, **kernel_defines(ctx, scaled_mode(scale, (least, largest), bounds))}
+    p = unit_points(p, scale, bounds, (least, largest))
+    defines = {**defines, **kernel_defines(ctx)}
+    box = tuple(np.float32(b * np.float32(scale)) for b in tree.root_box())
     moments = target.winding_moments()
     slot_faces = target.slot_faces()
     packed = use_packets(ctx, defines, packets)
@@ -290,8 +288,7 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
             ups = [cl.enqueue_copy(ctx.queue, bufs["points"], p[start:stop], is_blocking=False)]
             if m >= MIN_POINTS or (packed and m > PACKET):
                 # nearby points one after another, read as one run (bench/README.md)
-                order, sorted_points, ups = ordered_points(ctx, bufs["points"], m,
-                                                           *tree.root_box())
+                order, sorted_points, ups = ordered_points(ctx, bufs["points"], m, *box)
             items = -(-m // PACKET) if packed else m
             launch = dev.Launch(items, 1, -(-items // _WORK_GROUP) * _WORK_GROUP, _WORK_GROUP)
             ev = dev.run(ctx, KERNEL_FILE, "winding_packets" if packed else "winding_numbers",
@@ -369,13 +366,15 @@ def winding_numbers_numpy(vertices: np.ndarray, faces: np.ndarray, points: np.nd
     return out
 
 
-def expansion_numpy(moments: np.ndarray, points: np.ndarray) -> np.ndarray:
+def expansion_numpy(moments: np.ndarray, points: np.ndarray, scale: float) -> np.ndarray:
     """The twin of kernels/winding.cl's far-node term: ``float64 (K, N)``, the winding
     number that the expansion of each node of ``moments`` (``(K, 28)`` or ``(K, 15)``
     rows of :func:`lbvh.queries.winding_moments.node_moments`, its order read from the
-    row length) gives at each point, ``(N, 3)``; in float64 from the float32 moments."""
+    row length) gives at each point, ``(N, 3)``; in float64 from the float32 moments,
+    which are those of the mesh times ``scale`` (its
+    :func:`~lbvh.queries.winding_moments.winding_scale`), as the points are scaled."""
     m = np.asarray(moments, np.float64)
-    r = m[:, None, 0:3] - np.asarray(points, np.float64)[None, :, :]      # p - q
+    r = m[:, None, 0:3] - np.asarray(points, np.float64)[None, :, :] * scale   # p - q
     x, y, z = r[..., 0], r[..., 1], r[..., 2]
     inv = 1.0 / np.sqrt(x * x + y * y + z * z)
     inv3 = inv ** 3

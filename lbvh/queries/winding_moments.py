@@ -23,8 +23,7 @@ whose largest buffer would not hold the nodes' sums, gets the twins'
 numbers, computed on the host and uploaded.
 
 Lengths are scaled by :func:`winding_scale`, a power of two that brings a
-mesh of any size to about unit size, as kernels/winding.cl scales its
-differences.
+mesh of any size to unit size, where kernels/winding.cl walks it.
 """
 from __future__ import annotations
 
@@ -41,7 +40,7 @@ KERNEL_FILE = "winding_moments.cl"
 
 __all__ = ["DEFAULT_ORDER", "ROWS_ORDER1", "ROWS_ORDER2", "CORNER_ROWS", "CUBIC_MONOMIALS",
            "NODE_ERROR", "node_moments", "wide_moments", "lane_corners", "read_lanes", "make_moments",
-           "device_can_make", "kernel_defines", "winding_scale", "scale_of_box"]
+           "device_can_make", "kernel_defines", "winding_scale", "scale_of_box", "least_first"]
 
 #: Floats per node of the first-order moments (:func:`node_moments` with ``order=1``).
 ROWS_ORDER1 = 15
@@ -77,13 +76,40 @@ CUBIC_MONOMIALS = ((0, 0, 0), (1, 1, 1), (2, 2, 2), (0, 0, 1), (0, 0, 2), (0, 1,
                    (1, 1, 2), (0, 2, 2), (1, 2, 2), (0, 1, 2))
 
 
+def least_first(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each face's corners from its least on (ascending x, then y, then z, of the
+    float32 ``vertices``), in the face's cyclic order, ``int64 (F, 3)``, and
+    ``bool (F,)``: the faces two of whose corners are one point (kept as they are).
+    The twin of kernels/common.h ``least_corner``: the winding walk and its moments
+    read a triangle so, whatever corner the mesh lists first (a face flipped then
+    differs only by its last two corners)."""
+    v = np.asarray(vertices, np.float32)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    p = [v[f[:, k]] for k in range(3)]
+
+    def before(a, b):
+        return (a[:, 0] < b[:, 0]) | ((a[:, 0] == b[:, 0]) & (
+            (a[:, 1] < b[:, 1]) | ((a[:, 1] == b[:, 1]) & (a[:, 2] < b[:, 2]))))
+
+    def same(a, b):
+        return (a == b).all(axis=1)
+    one_point = same(p[0], p[1]) | same(p[1], p[2]) | same(p[0], p[2])
+    first = np.where(before(p[1], p[0]) & before(p[1], p[2]), 1,
+                     np.where(before(p[2], p[0]) & before(p[2], p[1]), 2, 0))
+    first[one_point] = 0
+    rotated = np.take_along_axis(f, (first[:, None] + np.arange(3)) % 3, axis=1)
+    return rotated, one_point
+
+
 def _triangle_terms(vertices: np.ndarray, faces: np.ndarray, order: int = 1) -> np.ndarray:
     """``float64 (F, 16)`` per triangle (``(F, 34)`` with ``order=2``): area, area *
     centroid (3), vector area ``a`` (3), the 3x3 outer product ``a c^T`` row by row (9);
     with ``order=2`` also ``a_i Q_jk`` for ``i`` = x, y, z and the six pairs ``jk`` of
     :data:`_PAIRS` (18), ``Q`` the mean of ``x x^T`` over the triangle,
-    ``(sum_v v v^T + 9 c c^T) / 12``. The array is the transpose of a C-ordered
-    ``(columns, F)`` one: each term is contiguous."""
+    ``(sum_v v v^T + 9 c c^T) / 12``, the sums over the corners grouped symmetric in
+    the last two (``faces`` as :func:`least_first` gives them: the same terms for any
+    first corner, those of ``a`` negated exactly for a face flipped). The array is the
+    transpose of a C-ordered ``(columns, F)`` one: each term is contiguous."""
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64)
     # corner k's coordinate j: x[k][j], contiguous (F,) arrays
@@ -93,7 +119,7 @@ def _triangle_terms(vertices: np.ndarray, faces: np.ndarray, order: int = 1) -> 
     a = [0.5 * (e1[1] * e2[2] - e1[2] * e2[1]), 0.5 * (e1[2] * e2[0] - e1[0] * e2[2]),
          0.5 * (e1[0] * e2[1] - e1[1] * e2[0])]
     area = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
-    c = [(x[0][j] + x[1][j] + x[2][j]) / 3.0 for j in range(3)]
+    c = [(x[0][j] + (x[1][j] + x[2][j])) / 3.0 for j in range(3)]
     out = np.empty((16 if order == 1 else 34, len(f)))
     out[0] = area
     for j in range(3):
@@ -103,7 +129,7 @@ def _triangle_terms(vertices: np.ndarray, faces: np.ndarray, order: int = 1) -> 
             out[7 + 3 * j + k] = a[j] * c[k]
     if order == 2:
         for m, (j, k) in enumerate(_PAIRS):
-            q = (x[0][j] * x[0][k] + x[1][j] * x[1][k] + x[2][j] * x[2][k]
+            q = ((x[0][j] * x[0][k] + (x[1][j] * x[1][k] + x[2][j] * x[2][k]))
                  + 9.0 * c[j] * c[k]) / 12.0
             for i in range(3):
                 out[16 + 3 * m + i] = a[i] * q
@@ -123,22 +149,19 @@ def _centre(lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
     return 0.5 * (np.asarray(lower, np.float64) + np.asarray(upper, np.float64))
 
 
-#: A mesh whose largest extent lies in [2^-SCALE_FREE, 2^SCALE_FREE) is walked as it is
-#: (scale 1): its solid angles' triple products (extent^3) and second-order moments
-#: (extent^4, times the distance^3 in the far terms) stay well inside float32.
-SCALE_FREE = 12
-
-
 def winding_scale(vertices: np.ndarray) -> float:
-    """The power of two that kernels/winding.cl multiplies every difference by (and
-    :func:`node_moments` every length), so that a mesh of any size is walked at about
-    unit size: 1.0 where the largest extent of the mesh's box is within
-    ``[2^-SCALE_FREE, 2^SCALE_FREE)`` (no scaling: ``SCALED=0``), else ``2^-e`` with
-    the extent in ``[2^(e-1), 2^e)``, ``e`` within [-126, 126] (a normal float32).
-    Without it, the float32 walk answered NaN for an icosphere of radius 1e6 or
-    1e-8 (tests/queries/test_winding.py). kernels/winding.cl scales a small mesh's
-    differences after subtracting and a large one's sides before (``SCALED`` 1 and 2,
-    :func:`lbvh.queries.winding.scaled_mode`)."""
+    """The power of two that brings a mesh to unit size: ``2^-e`` with the largest
+    extent of the mesh's box in ``[2^(e-1), 2^e)``, ``e`` within [-126, 126] (a
+    normal float32). kernels/winding.cl walks every mesh at that size: the points
+    (:func:`lbvh.queries.winding.unit_points`), the nodes' centres and rows
+    (:func:`node_moments`) and the corner rows (:func:`lane_corners`) are scaled by
+    it, and the vertices it reads from the mesh are, there. So no float32 product of
+    the walk overflows or underflows on a mesh of any size (unscaled, the walk
+    answered NaN for an icosphere of radius 1e6 or 1e-8: tests/queries/test_winding.py),
+    and the same mesh and points at any power-of-two scale are walked with the same
+    floats: the same winding numbers, bit for bit (tests/queries/test_invariance.py).
+    Scaling the points once, on the host, costs nothing measurable; scaling every
+    difference in the walk cost 4-7% on Sponza and a 1M terrain (bench/README.md)."""
     v = np.asarray(vertices)
     if not len(v):
         return 1.0
@@ -151,8 +174,6 @@ def scale_of_box(lower: np.ndarray, upper: np.ndarray) -> float:
     if not extent > 0 or not np.isfinite(extent):
         return 1.0
     e = int(np.frexp(extent)[1])
-    if -SCALE_FREE < e <= SCALE_FREE:
-        return 1.0
     return float(2.0 ** -min(max(e, -126), 126))
 
 
@@ -181,10 +202,9 @@ def node_moments(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices:
     and rounded once.
 
     Every length is multiplied by ``scale`` (default :func:`winding_scale` of the
-    vertices, a power of two) before it is summed, and ``p`` divided back: ``R^2``,
-    ``N``, ``M`` and the second-order rows are those of the mesh scaled by ``scale``,
-    as kernels/winding.cl scales its differences, so that no float32 product of
-    the walk overflows or underflows on a mesh of any size.
+    vertices, a power of two) before it is summed: ``p`` (``centre + shift * scale``),
+    ``R^2``, ``N``, ``M`` and the second-order rows are those of the mesh at unit
+    size, where kernels/winding.cl walks it.
     """
     if order not in (1, 2):
         raise ValueError(f"order: {order!r}; expected 1 or 2")
@@ -192,8 +212,8 @@ def node_moments(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices:
     v = np.asarray(vertices, np.float64)
     shift = _shift(v)
     scale = winding_scale(vertices) if scale is None else float(scale)
-    terms = _triangle_terms((v - shift) * scale, np.asarray(faces)[np.asarray(prim_order)],
-                            order).T
+    slots, _ = least_first(vertices, np.asarray(faces)[np.asarray(prim_order)])
+    terms = _triangle_terms((v - shift) * scale, slots, order).T
     cols = np.zeros((len(terms), n))            # (columns, nodes): each term contiguous
     leaf = is_leaf(nodes)
     first, count = prim_range_of(nodes).T
@@ -227,7 +247,7 @@ def node_moments(nodes: np.ndarray, prim_order: np.ndarray, root: int, vertices:
         centre = np.where(area > 0, cols[1:4] / area, 0.5 * (lower + upper))
     out = np.empty((ROWS_ORDER1 if order == 1 else ROWS_ORDER2, n), np.float32)
     far = np.maximum(np.abs(upper - centre), np.abs(centre - lower))
-    out[0:3] = centre / scale + shift[:, None]
+    out[0:3] = centre + (shift * scale)[:, None]
     out[3] = r2 = (far * far).sum(axis=0)
     out[-1] = area * r2 * np.sqrt(r2) / FAR_DIVISOR
     big_n = cols[4:7]
@@ -269,7 +289,10 @@ def lane_corners(lanes: np.ndarray, nodes: np.ndarray, prim_order: np.ndarray,
     """``float32 (records, CORNER_ROWS, width)``: the corners of the first triangle
     (slot) of each leaf lane of the wide records (``lanes``, as :func:`wide_moments`
     takes them; ``nodes`` and ``prim_order`` the binary tree's), rows x, y, z of its
-    first corner, then of the second and the third, the float32 vertices as they are;
+    first corner, then of the second and the third, from its least corner on
+    (:func:`least_first`; a triangle with two corners at one point: its first corner
+    three times, whose solid angle is 0), the float32 vertices times their
+    :func:`winding_scale`;
     zeros in a lane that is not a leaf or is empty. kernels/winding.cl sums the near
     leaves' first triangles from these rows, lane by lane, instead of one by one
     through the faces (kernels/winding_moments.cl ``store_corners``, its twin)."""
@@ -277,8 +300,11 @@ def lane_corners(lanes: np.ndarray, nodes: np.ndarray, prim_order: np.ndarray,
     node = np.maximum(lanes, 0)
     leaf = (lanes >= 0) & is_leaf(nodes)[node]
     first = prim_range_of(nodes)[node, 0]
-    tri = np.asarray(faces, np.int64)[np.asarray(prim_order, np.int64)[np.where(leaf, first, 0)]]
-    corners = np.asarray(vertices, np.float32)[tri].reshape(*lanes.shape, CORNER_ROWS)
+    tri, one_point = least_first(vertices, np.asarray(faces, np.int64)[
+        np.asarray(prim_order, np.int64)[np.where(leaf, first, 0)].ravel()])
+    tri[one_point] = tri[one_point, :1]
+    corners = np.asarray(vertices, np.float32)[tri].reshape(*lanes.shape, CORNER_ROWS) \
+        * np.float32(winding_scale(vertices))
     corners[~leaf] = 0.0
     return np.ascontiguousarray(corners.transpose(0, 2, 1))
 

@@ -28,7 +28,7 @@ from typing import Callable
 import numpy as np
 
 __all__ = ["Rewrite", "REWRITES", "rewrites", "ray_sets", "sliver_soup", "differences",
-           "representable"]
+           "representable", "winding_points"]
 
 
 @dataclass(frozen=True)
@@ -94,6 +94,22 @@ def sliver_soup(count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     v = (centre + corners).reshape(-1, 3).astype(np.float32)
     f = np.arange(3 * count, dtype=np.uint32).reshape(-1, 3)
     return v, f
+
+
+def winding_points(vertices: np.ndarray, faces: np.ndarray, count: int,
+                   seed: int = 0) -> np.ndarray:
+    """``float32 (count + 2 (count // 4), 3)``: points for the inside tests' rewritings:
+    ``count`` uniform in the mesh's box grown by a fifth each side, then the centroids
+    of ``count // 4`` random faces (on the surface), then as many points a thousandth
+    of the mesh's extent beside them (Gaussian)."""
+    v = np.asarray(vertices, np.float32)
+    rng = np.random.default_rng(seed)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    box = (lo + (hi - lo) * rng.uniform(-0.2, 1.2, (count, 3))).astype(np.float32)
+    f = np.asarray(faces, np.int64)
+    centroids = v[f[rng.integers(0, len(f), count // 4)]].mean(axis=1, dtype=np.float64)
+    beside = centroids + rng.normal(size=centroids.shape) * 1e-3 * float((hi - lo).max())
+    return np.concatenate([box, centroids.astype(np.float32), beside.astype(np.float32)])
 
 
 def _camera(vertices: np.ndarray, n: int, rng: np.random.Generator):

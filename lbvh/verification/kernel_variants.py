@@ -186,15 +186,13 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
                                                                       stack), **clipped})
     # winding.cl: one stack size per bucket, the points in their order or sorted, through
     # binary nodes and wide records of either width
-    # (and for meshes of every size: scaled or not)
-    for ctx, stack, ordered, scaled in itertools.product(ctxs, traverse.STACK_BUCKETS, (0, 1),
-                                                         winding.SCALED_MODES):
+    for ctx, stack, ordered in itertools.product(ctxs, traverse.STACK_BUCKETS, (0, 1)):
         add(winding.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered,
-                                  **winding.kernel_defines(ctx, scaled)})
+                                  **winding.kernel_defines(ctx)})
         for width in wide.WIDTHS:
             add(winding.KERNEL_FILE, {"STACK_SIZE": stack, "POINT_ORDER": ordered, "WIDE": 1,
                                       "WIDTH": width, **wide.lane_defines(ctx),
-                                      **winding.kernel_defines(ctx, scaled)})
+                                      **winding.kernel_defines(ctx)})
     # winding_moments.cl: the order the trees keep, into one row per node or the rows of
     # wide records of either width
     for width in (None, *wide.WIDTHS):

@@ -20,7 +20,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 import lbvh
-from lbvh.queries import exact
+from lbvh.queries import exact, winding
 from lbvh.verification import invariance
 from lbvh.verification.oracle import all_hits_brute, brute_force, exact_pair
 
@@ -314,3 +314,67 @@ def test_closest_points_do_not_depend_on_how_the_mesh_is_written(mesh):
                 w = np.c_[1 - other.u.astype(np.float64) - other.v, other.u, other.v]
                 got = np.einsum("ij,ijk->ik", w, tri)
                 assert np.allclose(got, base.points, atol=1e-5 * float(np.abs(v).max()))
+
+
+# -- winding numbers and inside tests -------------------------------------------------------
+
+@pytest.mark.parametrize("mesh", ["teapot", "slivers"])
+@pytest.mark.parametrize("build", BUILDS[:5], ids=lambda b: "-".join(map(str, b.values())))
+def test_winding_numbers_do_not_depend_on_how_the_mesh_is_written(mesh, build):
+    """Every corner rotated: the same winding numbers, bit for bit; every face
+    flipped: negated exactly; the scene scaled by 2^k: the same bits. Both walks (a
+    point a work-item and 16, the CPU's default), every builder a winding walk reads
+    (spatial splits have none); the inside test follows. The faces in another order
+    make another tree, which expands other nodes: the two then agree within twice the
+    walk's bound, and their inside tests wherever the exact winding number is farther
+    than the bound from 1/2."""
+    from lbvh.verification.error_bound import WINDING_BOUND
+    from lbvh.queries.winding import winding_numbers_numpy
+    v, f = {"teapot": teapot, "slivers": slivers}[mesh]()
+    p = invariance.winding_points(v, f, 1200, 6)
+    order = np.random.default_rng(1).permutation(len(f))
+    base = lbvh.build(v, f, **build)
+    walks = {packets: winding.winding_numbers(base, p, packets=packets)
+             for packets in (False, True)}
+    inside = base.contains(p)
+    for rewrite in invariance.rewrites(v, p):
+        other = lbvh.build(rewrite.points(v), rewrite.faces(f, order), **build)
+        q = rewrite.points(p)
+        for packets, w in walks.items():
+            got = winding.winding_numbers(other, q, packets=packets)
+            if rewrite.permute:
+                assert np.abs(got - w).max() <= 2 * WINDING_BOUND, rewrite.name
+                continue
+            want = -w if rewrite.corners == (0, 2, 1) else w
+            assert np.array_equal(got.view(np.uint32), want.view(np.uint32)), \
+                (rewrite.name, packets, int((got != want).sum()))
+        if rewrite.corners == (0, 2, 1):
+            continue
+        if rewrite.permute:
+            exact = winding_numbers_numpy(v, f, p)
+            clear = np.abs(exact - 0.5) > WINDING_BOUND
+            assert np.array_equal(other.contains(q)[clear], inside[clear])
+        else:
+            assert np.array_equal(other.contains(q), inside), rewrite.name
+
+
+def test_winding_numbers_through_a_scene_of_instances():
+    """Two placed copies of the teapot: its corners rotated, its winding reversed (the
+    scene's winding numbers negated exactly), or meshes, placements and points scaled
+    by 2^-40: the scene's winding numbers the same bits."""
+    v, f = teapot()
+    place = np.zeros((2, 3, 4))
+    place[:, :, :3] = np.eye(3)
+    place[1, :, 3] = [4.0, 0, 0]
+
+    def scene(vv, ff, k):
+        pl = place.copy()
+        pl[:, :, 3] *= 2.0 ** k
+        return lbvh.Scene([lbvh.build(vv, ff)], [0, 0], pl)
+    p = invariance.winding_points(np.concatenate([v, v + np.float32([4, 0, 0])]), f, 800, 7)
+    base = scene(v, f, 0).winding_numbers(p)
+    assert np.abs(base).max() > 0.9                  # points inside the teapots
+    for corners, k, sign in (((1, 2, 0), 0, 1), ((0, 2, 1), 0, -1), ((0, 1, 2), -40, 1)):
+        other = scene(np.ldexp(v, k).astype(np.float32), np.ascontiguousarray(f[:, corners]), k)
+        got = other.winding_numbers(np.ldexp(p, k).astype(np.float32))
+        assert np.array_equal(got.view(np.uint32), (sign * base).view(np.uint32)), (corners, k)

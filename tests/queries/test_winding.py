@@ -54,13 +54,18 @@ def test_moments_sum_the_triangles_of_each_node():
     v, f = meshes.soup(500, 3, 0.05, spread="normal")
     bvh = lbvh.build(v, f, collapse=True)
     m = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f).astype(np.float64)
+    # the moments are the mesh's at unit size (winding_scale, a power of two), the
+    # centres p too
+    unit = wm.winding_scale(v)
+    assert unit != 1.0
+    vs = v.astype(np.float64) * unit
     rng = np.random.default_rng(0)
     for node in [bvh.root, *rng.integers(0, bvh.num_nodes, 20)]:
         tris = _node_triangles(bvh, node)
-        t = _triangle_terms(v, f[tris])
+        t = _triangle_terms(vs, f[tris])
         p = t[:, 1:4].sum(0) / t[:, 0].sum()
         n = t[:, 4:7].sum(0)
-        c = v[f[tris]].astype(np.float64).mean(axis=1)
+        c = vs[f[tris]].mean(axis=1)
         moment = (t[:, 4:7, None] * (c - p)[:, None, :]).sum(0)
         assert np.allclose(m[node, 0:3], p, rtol=1e-6, atol=1e-6)
         assert np.allclose(m[node, 4:7], n, rtol=1e-5, atol=1e-9)
@@ -72,11 +77,11 @@ def test_moments_sum_the_triangles_of_each_node():
         assert np.isclose(m[node, 7], np.trace(moment), rtol=1e-4, atol=size)
         assert np.allclose(m[node, 8:14], pairs, rtol=1e-4, atol=size)
         # every vertex of the node lies within R of p
-        reach = np.linalg.norm(v[f[tris]].reshape(-1, 3) - p, axis=1).max()
+        reach = np.linalg.norm(vs[f[tris]].reshape(-1, 3) - p, axis=1).max()
         assert reach <= np.sqrt(m[node, 3]) * (1 + 1e-6)
         # the second order: H_ijk = sum a_i S_jk, S the mean of (x - p)(x - p)^T over
         # each triangle, from its corners: (sum_v d_v d_v^T + 9 d_c d_c^T) / 12
-        d = v[f[tris]].astype(np.float64) - p
+        d = vs[f[tris]] - p
         dc = d.mean(axis=1)
         s = (np.einsum("tvj,tvk->tjk", d, d) + 9 * np.einsum("tj,tk->tjk", dc, dc)) / 12
         h = np.einsum("ti,tjk->ijk", t[:, 4:7], s)
@@ -90,8 +95,8 @@ def test_moments_sum_the_triangles_of_each_node():
             assert np.isclose(cubic, 7.5 * np.einsum("ijk,i,j,k", h, r, r, r),
                               rtol=1e-4, atol=1e-4 * scale)
     # the far floor, last: the node's triangle area A times R^3 over 4 pi NODE_ERROR
-    areas = np.linalg.norm(np.cross(v[f][:, 1] - v[f][:, 0], v[f][:, 2] - v[f][:, 0]),
-                           axis=1).astype(np.float64) / 2
+    areas = np.linalg.norm(np.cross(vs[f][:, 1] - vs[f][:, 0], vs[f][:, 2] - vs[f][:, 0]),
+                           axis=1) / 2
     for node in [bvh.root, *rng.integers(0, bvh.num_nodes, 20)]:
         tris = _node_triangles(bvh, node)
         floor = areas[tris].sum() * m[node, 3] ** 1.5 / (4 * np.pi * wm.NODE_ERROR)
@@ -116,20 +121,22 @@ def test_the_far_expansion_is_its_twins_and_of_the_second_order():
     bvh = lbvh.BVH.from_arrays(built.nodes, built.prim_order, built.root, v, f, builder="x")
     assert not bvh.wide_records(max_bytes=0).packed
     m = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f)
+    unit = wm.winding_scale(v)                  # the moments are of the mesh at unit size
     root = m[bvh.root]
-    radius = float(np.sqrt(root[3]))
+    radius = float(np.sqrt(root[3])) / unit
+    centre = root[0:3] / unit
     rng = np.random.default_rng(4)
     dirs = rng.normal(size=(200, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     errors = {}
     for dist in (3.0, 6.0, 12.0):
-        p = (root[0:3] + dist * radius * dirs).astype(np.float32)
-        twin = expansion_numpy(root[None, :], p)[0]
+        p = (centre + dist * radius * dirs).astype(np.float32)
+        twin = expansion_numpy(root[None, :], p, unit)[0]
         w = bvh.winding_numbers(p, beta=1.0)
         assert np.abs(w - twin).max() <= 1e-5 * np.abs(twin).max() + 1e-7
         exact = winding_numbers_numpy(v, f, p)
         errors[dist] = (np.abs(twin - exact).max(),
-                        np.abs(expansion_numpy(root[None, :ROWS_ORDER1], p)[0] - exact).max())
+                        np.abs(expansion_numpy(root[None, :ROWS_ORDER1], p, unit)[0] - exact).max())
     # each doubling of the distance: the second-order error falls by about 2^5 (1/r^2 of
     # the contribution times (R / r)^3), the first-order one by about 2^4
     for near, far in ((3.0, 6.0), (6.0, 12.0)):
@@ -256,9 +263,11 @@ def test_wide_moments_are_the_lanes_moments():
 @pytest.mark.parametrize("collapse", [False, True])
 def test_lane_corners_are_each_leafs_first_triangle(collapse):
     """The corner rows of a wide record: lane c of a leaf holds the corners of the
-    triangle in that leaf's first slot, in the order x0 y0 z0 x1 ... z2; any other
-    lane (internal node, empty) zeros. Checked against the faces through prim_order
-    one leaf at a time, on a tree of one-triangle leaves and a collapsed one."""
+    triangle in that leaf's first slot, in the order x0 y0 z0 x1 ... z2, from its
+    least corner on (the rotation of the face that is least as a tuple of nine
+    floats); any other lane (internal node, empty) zeros. Checked against the faces
+    through prim_order one leaf at a time, on a tree of one-triangle leaves and a
+    collapsed one."""
     v, f = meshes.soup(600, 3, 0.05, spread="normal")
     bvh = lbvh.build(v, f, collapse=collapse)
     wide = bvh.wide_records(width=8)
@@ -271,7 +280,9 @@ def test_lane_corners_are_each_leafs_first_triangle(collapse):
         got = corners[r, :, c]
         if node >= 0 and bvh.is_leaf[node]:
             first = bvh.nodes["a"][node]
-            assert np.array_equal(got, v[f[bvh.prim_order[first]]].reshape(9))
+            tri = v[f[bvh.prim_order[first]]]
+            least = min(tuple(np.roll(tri, -k, axis=0).ravel()) for k in range(3))
+            assert np.array_equal(got, np.float32(least) * np.float32(wm.winding_scale(v)))
             leaves += 1
         else:
             assert (got == 0).all()
@@ -339,7 +350,9 @@ def test_meshes_of_any_size(size):
     ico = trimesh.creation.icosphere(subdivisions=2)
     v = np.float32(ico.vertices * size)
     f = np.uint32(ico.faces)
-    assert (wm.winding_scale(v) == 1.0) == (size == 1.0)
+    # every mesh is walked at unit size: its largest extent times the scale in [1/2, 1)
+    extent = float((v.astype(np.float64).max(axis=0) - v.min(axis=0)).max())
+    assert 0.5 <= extent * wm.winding_scale(v) < 1.0
     p = np.float32(np.random.default_rng(2).uniform(-1.4, 1.4, (300, 3)) * size)
     exact = winding_numbers_numpy(v, f, p)
     bvh = lbvh.build(v, f)
@@ -410,7 +423,8 @@ def test_a_node_of_much_area_for_its_radius_is_opened():
     assert np.abs(binary.winding_numbers(p) - exact).max() <= WINDING_BOUND * 0.6
     # without the floor (a node far on beta alone), the tube's root expansion alone
     root = node_moments(binary.nodes, binary.prim_order, binary.root, v, f)[binary.root]
-    assert np.abs(expansion_numpy(root[None], p)[0] - exact).max() > WINDING_BOUND
+    assert np.abs(expansion_numpy(root[None], p, wm.winding_scale(v))[0] - exact).max() \
+        > WINDING_BOUND
     # and the binary walk with a node error so large that the floor lets every node
     # past: the floor is what kept it within 0.6 of the bound (0.026; without, 0.048)
     loose = np.abs(binary.winding_numbers(p, node_error=1e30) - exact).max()
@@ -427,7 +441,7 @@ def test_a_node_of_much_area_for_its_radius_is_opened():
 def test_points_far_from_the_mesh():
     """Points 1e3 to 1e30 sizes away from a unit icosphere: winding numbers about 0,
     not NaN (its far terms, distance^3 times size^4, overflowed from about 1e13 away:
-    such points are walked with the differences clamped, scaled_mode)."""
+    such points are moved to 2^40 sizes from the mesh, unit_points)."""
     ico = trimesh.creation.icosphere(subdivisions=2)
     v, f = np.float32(ico.vertices), np.uint32(ico.faces)
     bvh = lbvh.build(v, f)
@@ -444,10 +458,12 @@ def test_points_far_from_the_mesh():
         assert np.array_equal(alone.view(np.uint32), together.view(np.uint32))
     box = bvh.mesh.bounds
     assert np.array_equal(box[0], v.min(0)) and np.array_equal(box[1], v.max(0))
-    assert winding.scaled_mode(1.0, (float(p[:2].min()), float(p[:2].max())), box) == 1
-    assert winding.scaled_mode(1.0, (float(p[2:].min()), float(p[2:].max())), box) == 0
-    assert winding.scaled_mode(2.0 ** -20, (0.0, 1.0), box) == 2
-    assert winding.scaled_mode(2.0 ** 20, (0.0, 1.0), box) == 1
+    # the points as the walk sees them: scaled, the far ones within 2^40 of the box
+    scale = wm.winding_scale(v)
+    unit = winding.unit_points(p, scale, box)
+    assert np.array_equal(unit[2], p[2] * np.float32(scale))
+    reach = np.maximum(box[0] * scale - unit[:2], unit[:2] - box[1] * scale)
+    assert reach.max() <= winding.FAR_LIMIT and reach.max() > 0.5 * winding.FAR_LIMIT
 
 
 def test_moments_without_device_doubles_are_the_twins(monkeypatch):
@@ -554,6 +570,10 @@ def _angles_and_triangles(rng, n, lanes):
            * 10.0 ** rng.uniform(-3, 1, (n, lanes, 1, 1))).astype(np.float32)
     tri[0, 0, 0] = q[0]                              # the point at a corner
     tri[1, 0, :, 2] = q[1, 2]                        # the point on the triangle's plane
+    # each from its least corner on, as the corner rows hold them (lane_corners) and
+    # solid_angle reads them
+    rotated, _ = wm.least_first(tri.reshape(-1, 3), np.arange(3 * n * lanes).reshape(-1, 3))
+    tri = tri.reshape(-1, 3)[rotated].reshape(tri.shape)
     return y.astype(np.float32), x.astype(np.float32), q, tri
 
 
