@@ -1,17 +1,21 @@
-"""Ray queries of two checkouts in the same run: this one against another (``--other``).
+"""Queries of two checkouts in the same run: this one against another (``--other``).
 
     .venv/bin/python bench/bench_ab.py --other /path/to/other/checkout
         [--scenes bunny sponza terrain-1m] [--rays 1024x1024] [--rounds 4] [--repeats 3]
+        [--queries closest any winding] [--points 262144]
 
 lbvh cannot be imported twice in one process, so each round runs one worker
 process per checkout (in alternating order from round to round), each timing
 ``bvh.intersect`` (closest hit) and ``bvh.occluded`` (any hit) through the public
 API on the default ``lbvh.build`` tree, on the bench camera's primary rays
 (``lbvh/data/cameras.json``), the median of ``--repeats`` calls after one untimed
-call. The report gives each checkout's median over the rounds and the ratio
-this / other (above 1: this checkout is slower), with the answers' agreement:
-the fraction of rays with the same answer (closest hit: the same triangle or
-miss; any hit: the same bool) and with the same bits (closest hit: ``t``).
+call. ``winding`` times ``bvh.winding_numbers`` at ``--points`` points drawn
+uniformly from the scene's box grown by a tenth each side (seed 0). The report
+gives each checkout's median over the rounds and the ratio this / other (above
+1: this checkout is slower), with the answers' agreement: the fraction of rays
+with the same answer (closest hit: the same triangle or miss; any hit: the same
+bool; winding: the same side of 1/2) and with the same bits (closest hit: ``t``;
+winding: the winding number).
 """
 from __future__ import annotations
 
@@ -41,12 +45,18 @@ scene = common.load_bench_scene(sys.argv[3], tuple(map(int, sys.argv[4].split("x
                                 common.load_cameras())
 o, d = scene.camera.rays()
 bvh = lbvh.build(scene.vertices, scene.faces)
+lo, hi = scene.vertices.min(axis=0), scene.vertices.max(axis=0)
+pts = (lo - 0.1 * (hi - lo) + 1.2 * (hi - lo) * np.random.default_rng(0).random(
+    (int(sys.argv[8]), 3))).astype(np.float32)
+queries = {"closest": lambda: bvh.intersect(o, d), "any": lambda: bvh.occluded(o, d),
+           "winding": lambda: bvh.winding_numbers(pts)}
 out = {}
-for name, fn in (("closest", bvh.intersect), ("any", bvh.occluded)):
-    fn(o, d)
+for name in sys.argv[7].split(","):
+    fn = queries[name]
+    fn()
     times = []
     for _ in range(int(sys.argv[5])):
-        t0 = time.perf_counter(); r = fn(o, d); times.append(time.perf_counter() - t0)
+        t0 = time.perf_counter(); r = fn(); times.append(time.perf_counter() - t0)
     out[name] = sorted(times)[len(times) // 2]
     res = r.t if name == "closest" else r
     np.save(sys.argv[6] + f"-{name}.npy", res)
@@ -56,11 +66,12 @@ print(json.dumps(out))
 """
 
 
-def run(checkout: Path, scene: str, rays: str, repeats: int, stem: str) -> dict:
+def run(checkout: Path, scene: str, rays: str, repeats: int, stem: str, queries: list[str],
+        points: int) -> dict:
     env = dict(os.environ, PYTHONPATH=str(checkout))
     out = subprocess.run([sys.executable, "-c", WORKER, str(checkout), str(HERE), scene, rays,
-                          str(repeats), stem], capture_output=True, text=True, env=env,
-                         check=True)
+                          str(repeats), stem, ",".join(queries), str(points)],
+                         capture_output=True, text=True, env=env, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -71,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rays", default="1024x1024")
     p.add_argument("--rounds", type=int, default=4)
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--queries", nargs="+", default=["closest", "any"],
+                   choices=["closest", "any", "winding"])
+    p.add_argument("--points", type=int, default=1 << 18)
     p.add_argument("--out", type=Path, default=HERE / "out" / "ab")
     args = p.parse_args(argv)
     this = HERE.parent
@@ -81,17 +95,21 @@ def main(argv: list[str] | None = None) -> int:
     report = []
     tmp = Path(tempfile.mkdtemp())
     for scene in args.scenes:
-        times = {"this": {"closest": [], "any": []}, "other": {"closest": [], "any": []}}
+        times = {who: {q: [] for q in args.queries} for who in ("this", "other")}
         for r in range(args.rounds):
             order = [("this", this), ("other", args.other)]
             for who, path in (order if r % 2 == 0 else order[::-1]):
-                got = run(path, scene, args.rays, args.repeats, str(tmp / who))
+                got = run(path, scene, args.rays, args.repeats, str(tmp / who), args.queries,
+                          args.points)
                 for q in got:
                     times[who][q].append(got[q])
-        for q in ("closest", "any"):
+        for q in args.queries:
             a, b = np.load(tmp / f"this-{q}.npy"), np.load(tmp / f"other-{q}.npy")
             if q == "any":
                 same = bits = float(np.mean(a == b))
+            elif q == "winding":
+                same = float(np.mean((a > 0.5) == (b > 0.5)))
+                bits = float(np.mean(a.view(np.uint32) == b.view(np.uint32)))
             else:   # the same triangle (or miss); and t bit for bit
                 same = float(np.mean(np.load(tmp / "this-prim.npy")
                                      == np.load(tmp / "other-prim.npy")))

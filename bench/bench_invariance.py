@@ -5,7 +5,13 @@ views, aimed, surface), each rewriting (corners rotated, winding flipped, faces
 permuted, the scene scaled by powers of two from 2^-60 to 2^60 where float32
 holds it) is built and traced, and the rays whose answer differs from the
 scene as written are counted: closest hit (hit/miss, triangle, t exactly as
-scaled), any hit, hit counts. Every count should be 0.
+scaled), any hit, hit counts. The same rewritings of each scene are asked for
+winding numbers at points in and about it and on and beside its faces
+(:func:`lbvh.verification.invariance.winding_points`): the points whose winding
+number is not the same bits (negated for the winding flipped), and whose side of
+1/2 changed. Every count should be 0, but for the faces permuted, which make
+another tree: its winding numbers are within the walk's bound of the first ones,
+not the same bits.
 
     .venv/bin/python bench/bench_invariance.py [--scenes bunny teapot slivers]
         [--rays 4096] [--builders lbvh sah] [--out bench/results/invariance]
@@ -43,7 +49,8 @@ def measure(v: np.ndarray, f: np.ndarray, builder: str, rays: int) -> list[dict]
     sets = invariance.ray_sets(v, f, rays, 0, trace=base.intersect)
     order = np.random.default_rng(1).permutation(len(f))
     rows = []
-    all_o = np.concatenate([o for o, _ in sets.values()])
+    points = invariance.winding_points(v, f, rays, 0)
+    all_o = np.concatenate([o for o, _ in sets.values()] + [points])
     for rewrite in invariance.rewrites(v, all_o):
         other = lbvh.build(rewrite.points(v), rewrite.faces(f, order), builder=builder)
         for name, (o, d) in sets.items():
@@ -54,6 +61,15 @@ def measure(v: np.ndarray, f: np.ndarray, builder: str, rays: int) -> list[dict]
             got["count"] = int((base.count_hits(o, d) != other.count_hits(o2, d)).sum())
             rows.append({"builder": builder, "rays": name, "count_rays": len(o),
                          "rewrite": rewrite.name, **got})
+        if builder != "sbvh":       # spatial splits have no winding numbers
+            sign = np.float32(-1 if rewrite.corners == (0, 2, 1) else 1)
+            w = base.winding_numbers(points)
+            w2 = sign * other.winding_numbers(rewrite.points(points))
+            rows.append({"builder": builder, "rays": "points", "count_rays": len(points),
+                         "rewrite": rewrite.name,
+                         "winding": int((w.view(np.uint32) != w2.view(np.uint32)).sum()),
+                         "inside": int(((w > 0.5) != (w2 > 0.5)).sum()),
+                         "winding_max": float(np.abs(w - w2).max())})
     return rows
 
 
@@ -72,9 +88,12 @@ def main(argv: list[str] | None = None) -> int:
     lines = ["# Answers against rewritings of the scene", "",
              f"Command: `{report['command']}` at {report['commit']}  ", "",
              "Rays whose answer changed (closest hit: hit/miss, triangle, t not exactly as "
-             "scaled; any hit; hit count). 0 everywhere is the goal.", "",
-             "| scene | builder | rays | rewrite | hit | triangle | t | any hit | count |",
-             "|---|---|---|---|---:|---:|---:|---:|---:|"]
+             "scaled; any hit; hit count); points whose winding number changed (bits; the "
+             "side of 1/2; the largest change). 0 everywhere is the goal, but for the "
+             "winding numbers of the faces permuted (another tree: within the bound).", "",
+             "| scene | builder | rays | rewrite | hit | triangle | t | any hit | count | "
+             "winding | inside | largest |",
+             "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for scene in args.scenes:
         mesh = load(scene)
         if mesh is None:
@@ -85,13 +104,23 @@ def main(argv: list[str] | None = None) -> int:
             for row in measure(v, f, builder, args.rays):
                 row["scene"] = scene
                 report["rows"].append(row)
+                if row["rays"] == "points":
+                    cells = (f"| | | | | {row['winding']} | {row['inside']} | "
+                             f"{row['winding_max']:.2g} |")
+                else:
+                    cells = (f"| {row['hit']} | {row['prim']} | {row['t']} | {row['any']} | "
+                             f"{row['count']} | | | |")
                 lines.append(f"| {scene} | {builder} | {row['rays']} ({row['count_rays']}) | "
-                             f"{row['rewrite']} | {row['hit']} | {row['prim']} | {row['t']} | "
-                             f"{row['any']} | {row['count']} |")
+                             f"{row['rewrite']} {cells}")
                 print(lines[-1], file=sys.stderr)
     report["duration_seconds"] = time.perf_counter() - start
-    total = sum(r["hit"] + r["prim"] + r["t"] + r["any"] + r["count"] for r in report["rows"])
-    lines += ["", f"Total changed answers: {total}. Run time {report['duration_seconds']:.0f} s."]
+    rays = [r for r in report["rows"] if r["rays"] != "points"]
+    total = sum(r["hit"] + r["prim"] + r["t"] + r["any"] + r["count"] for r in rays)
+    kept = [r for r in report["rows"] if r["rays"] == "points" and r["rewrite"] != "permute"]
+    winding = sum(r["winding"] + r["inside"] for r in kept)
+    lines += ["", f"Total changed ray answers: {total}; changed winding numbers and inside "
+              f"tests (the faces permuted aside): {winding}. Run time "
+              f"{report['duration_seconds']:.0f} s."]
     args.out.mkdir(parents=True, exist_ok=True)
     common.write_report(report, "\n".join(lines) + "\n",
                         {"markdown": args.out / "bench_invariance.md",
