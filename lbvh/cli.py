@@ -3,7 +3,8 @@
 ``lbvh render SCENE -o image.png`` renders a scene; ``lbvh info SCENE`` prints
 the build report of its BVH; ``lbvh devices`` lists the OpenCL devices;
 ``lbvh query KIND SCENE INPUT`` answers a point query (``closest``,
-``signed-distance``, ``contains``) or a ray query (``count-hits``, ``all-hits``)
+``signed-distance``, ``contains``) or a ray query (``closest-hit``, ``any-hit``,
+``count-hits``, ``all-hits``)
 for every point or ray of a file (through the instances of a file that places
 several meshes, naming the instance of each answer); ``lbvh check`` runs the
 hard-case suite (:mod:`lbvh.verification.check`) and exits 1 if a case fails;
@@ -164,6 +165,18 @@ def _add_build_options(p: argparse.ArgumentParser) -> None:
                    help="OpenCL device name substring (default: $LBVH_DEVICE or PoCL's CPU)")
 
 
+def _first_use_notice(device_name: str | None) -> None:
+    """On stderr, before the first build on a device: the wait that follows is the
+    one-time self-test and compile (:func:`lbvh.verification.selftest.pending`)."""
+    try:
+        device = find_device(device_name)
+    except (DeviceError, ValueError):
+        return   # the build names the problem
+    if selftest.pending(device):
+        print(f"lbvh: first use of {describe(device)}: compiling the kernels and running the "
+              "self-test (once; later runs reuse the answer)", file=sys.stderr, flush=True)
+
+
 def _build(scene, args: argparse.Namespace, **extra: Any):
     """The tree the build options ask for; for a file that places several meshes, an
     :class:`lbvh.Scene` of its instances (each mesh built once with those options).
@@ -171,6 +184,7 @@ def _build(scene, args: argparse.Namespace, **extra: Any):
     options = dict(builder=args.builder, collapse=args.collapse, treelet_rounds=args.treelets,
                    treelet_leaves=args.treelet_leaves, treelet_min_leaves=args.treelet_min_leaves,
                    key_bits=args.keys, device=args.device, **extra)
+    _first_use_notice(args.device)
     source = scene.extras.get("instances")
     if source is not None:
         return build(source, **options)
@@ -263,9 +277,29 @@ QUERY_KINDS = {
     "closest": ("points", "distance, points, prim, u, v, found"),
     "signed-distance": ("points", "signed_distance"),
     "contains": ("points", "contains, winding"),
+    "closest-hit": ("rays", "t, prim, u, v, hit"),
+    "any-hit": ("rays", "hit"),
     "count-hits": ("rays", "counts"),
     "all-hits": ("rays", "offsets, t, prim, u, v, total"),
 }
+
+#: What ``-o`` writes, by the file's suffix.
+OUTPUT_SUFFIXES = (".npz", ".csv", ".txt")
+
+
+def plural(count: int, noun: str) -> str:
+    """``"1 ray"``, ``"2 rays"``, ``"1,024 points"``."""
+    return f"{count:,} {noun}{'' if count == 1 else 's'}"
+
+
+def rate(count: int, seconds: float, noun: str) -> str:
+    """``count`` per second in the unit that reads best: ``"12.3 M rays/s"``,
+    ``"456 k points/s"``, ``"7 rays/s"``."""
+    per = count / max(seconds, 1e-9)
+    for scale, unit in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if per >= scale:
+            return f"{per / scale:.3g} {unit} {noun}s/s"
+    return f"{per:.3g} {noun}s/s"
 
 
 def _stats(name: str, values: np.ndarray) -> dict[str, float | None]:
@@ -313,6 +347,21 @@ def _run_query(bvh: Any, kind: str, data: Any, args: argparse.Namespace
         return ({"contains": inside, "winding": w}, summary,
                 [f"inside:    {summary['inside']:,} (winding number > 1/2)"])
     origins, directions = data
+    if kind in ("closest-hit", "any-hit"):
+        got = (bvh.intersect(origins, directions) if kind == "closest-hit"
+               else bvh.occluded(origins, directions, return_hits=True))
+        hit = got.mask
+        arrays = ({"t": got.t, "prim": got.prim, **({"instance": got.instance} if scene else {}),
+                   "u": got.u, "v": got.v, "hit": hit} if kind == "closest-hit" else {"hit": hit})
+        summary = {"rays_hit": int(hit.sum()), **_stats("t", got.t[hit]),
+                   "overflow": int(got.overflow_count)}
+        lines = [f"hit:       {plural(summary['rays_hit'], 'ray')} of {len(hit):,}"]
+        if kind == "closest-hit" and hit.any():
+            lines.append(f"t:         min {summary['t_min']:.6g}, median {summary['t_median']:.6g}, "
+                         f"max {summary['t_max']:.6g}")
+        if kind == "any-hit":
+            summary = {k: summary[k] for k in ("rays_hit", "overflow")}
+        return arrays, summary, lines
     if kind == "count-hits" and args.signed:
         if scene:
             raise ValueError("--signed: a file of placed meshes is counted unsigned only; "
@@ -322,19 +371,19 @@ def _run_query(bvh: Any, kind: str, data: Any, args: argparse.Namespace
                    "rays_negative": int((counts < 0).sum())}
         return ({"counts": counts}, summary,
                 [f"signed:    {summary['signed_sum']:,} in all (+1 leaving by a front, -1 "
-                 f"entering); {summary['rays_positive']:,} rays above 0, "
+                 f"entering); {plural(summary['rays_positive'], 'ray')} above 0, "
                  f"{summary['rays_negative']:,} below"])
     if kind == "count-hits":
         counts = bvh.count_hits(origins, directions)
         summary = {"hits": int(counts.sum()), "rays_hit": int((counts > 0).sum()),
                    "most_hits": int(counts.max()) if len(counts) else 0}
         return ({"counts": counts}, summary,
-                [f"hits:      {summary['hits']:,} in all; {summary['rays_hit']:,} rays hit, "
-                 f"at most {summary['most_hits']} times"])
+                [f"hits:      {summary['hits']:,} in all; {plural(summary['rays_hit'], 'ray')} "
+                 f"hit, at most {plural(summary['most_hits'], 'time')}"])
     got = bvh.all_hits(origins, directions, max_hits=args.max_hits)
     summary = {"hits": len(got.t), "rays_hit": int((got.total > 0).sum()),
                "truncated": int(got.truncated.sum())}
-    lines = [f"hits:      {summary['hits']:,} kept; {summary['rays_hit']:,} rays hit"
+    lines = [f"hits:      {summary['hits']:,} kept; {plural(summary['rays_hit'], 'ray')} hit"
              + (f", {summary['truncated']:,} past --max-hits" if summary["truncated"] else "")]
     arrays = {"offsets": got.offsets, "t": got.t, "prim": got.prim,
               **({"instance": got.instance} if scene else {}), "u": got.u, "v": got.v,
@@ -345,14 +394,59 @@ def _run_query(bvh: Any, kind: str, data: Any, args: argparse.Namespace
     return arrays, summary, lines
 
 
+def answer_table(arrays: dict[str, np.ndarray]) -> tuple[list[str], list[np.ndarray]]:
+    """The answers as columns of one table: a row per point or ray (an ``(N, 3)`` array
+    in three columns, ``name_x``, ``name_y``, ``name_z``; booleans as 0 and 1), or for
+    every hit (``all-hits``: its ray's index, then the hit's fields; ``offsets`` and
+    ``total`` are what the rows say)."""
+    if "offsets" in arrays:
+        offsets = arrays["offsets"]
+        ray = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+        arrays = {"ray": ray, **{k: a for k, a in arrays.items() if k not in ("offsets", "total")}}
+    names, columns = [], []
+    for name, a in arrays.items():
+        a = a.astype(np.int64) if a.dtype == bool else a
+        if a.ndim == 2:
+            names += [f"{name}_{axis}" for axis in "xyz"[:a.shape[1]]]
+            columns += [a[:, k] for k in range(a.shape[1])]
+        else:
+            names.append(name)
+            columns.append(a)
+    return names, columns
+
+
+def write_answers(path: str, arrays: dict[str, np.ndarray]) -> None:
+    """Write the answers where ``path``'s suffix says: ``.npz`` (every array by name,
+    ``numpy.load`` reads it), ``.csv`` (a header row, comma-separated) or ``.txt`` (a
+    ``#`` header, space-separated): :func:`answer_table`'s rows, floats to the digits
+    that read back the same float32 (9 significant)."""
+    suffix = Path(path).suffix.lower()
+    if suffix == ".npz":
+        with open(path, "wb") as out:   # the name as given, no suffix added
+            np.savez(out, **arrays)
+        return
+    names, columns = answer_table(arrays)
+    fmt = ["%.9g" if c.dtype.kind == "f" else "%d" for c in columns]
+    table = np.column_stack([c.astype(np.float64) for c in columns])   # int64 up to 2^53 exact
+    if suffix == ".csv":
+        np.savetxt(path, table, fmt=fmt, delimiter=",", header=",".join(names), comments="")
+    else:
+        np.savetxt(path, table, fmt=fmt, delimiter=" ", header=" ".join(names))
+
+
 def cmd_query(args: argparse.Namespace) -> int:
-    """``lbvh query KIND SCENE INPUT [-o OUT.npz]``: a point or ray query on the mesh, or
+    """``lbvh query KIND SCENE INPUT [-o OUT]``: a point or ray query on the mesh, or
     through the instances of a file of placed meshes; a summary on stdout (or JSON),
-    every answer in OUT.npz."""
+    every answer in OUT (.npz, .csv or .txt: :func:`write_answers`)."""
     if args.output is not None:
         folder = Path(args.output).resolve().parent
         if not folder.is_dir():
             raise ValueError(f"{args.output}: cannot write, the folder {folder} does not exist")
+        suffix = Path(args.output).suffix.lower()
+        if suffix not in OUTPUT_SUFFIXES:
+            raise ValueError(f"{args.output}: no output format for {suffix or 'a name without a suffix'}"
+                             f"; name the file {', '.join(OUTPUT_SUFFIXES[:-1])} or "
+                             f"{OUTPUT_SUFFIXES[-1]}")
     if args.signed and args.kind != "count-hits":
         raise ValueError(f"--signed: only for count-hits, not {args.kind}")
     reads = QUERY_KINDS[args.kind][0]
@@ -364,8 +458,7 @@ def cmd_query(args: argparse.Namespace) -> int:
     seconds = time.perf_counter() - start
     count = len(data) if reads == "points" else len(data[0])
     if args.output is not None:
-        with open(args.output, "wb") as out:   # the name as given, no suffix added
-            np.savez(out, **arrays)
+        write_answers(args.output, arrays)
     summary = {"scene": _scene_name(args.scene), "query": args.kind,
                **({"instances": bvh.num_instances} if isinstance(bvh, LbvhScene) else {}),
                reads: count, "seconds": seconds, **fields, "output": args.output}
@@ -378,8 +471,7 @@ def cmd_query(args: argparse.Namespace) -> int:
         print(f"{reads + ':':<10} {count:,} from {args.input}")
         for line in lines:
             print(line)
-        print(f"query:     {seconds * 1e3:.1f} ms ({count / max(seconds, 1e-9) / 1e6:.2f} "
-              f"M{reads}/s)")
+        print(f"query:     {seconds * 1e3:.1f} ms ({rate(count, seconds, reads[:-1])})")
         if args.output is not None:
             print(f"wrote:     {args.output} ({', '.join(arrays)})")
     return 0
@@ -534,15 +626,18 @@ def make_parser() -> argparse.ArgumentParser:
                                      "instances of a file of placed meshes")
     p.add_argument("kind", choices=list(QUERY_KINDS),
                    help="closest: the nearest point of the mesh; signed-distance: the distance, "
-                        "negative inside; contains: inside or not (winding number); count-hits: "
-                        "how often each ray crosses the mesh; all-hits: every hit of each ray")
+                        "negative inside; contains: inside or not (winding number); closest-hit: "
+                        "each ray's first hit; any-hit: whether each ray hits; count-hits: how "
+                        "often each ray crosses the mesh; all-hits: every hit of each ray")
     p.add_argument("scene", help=SCENE_HELP)
     p.add_argument("input", help="query points (closest, signed-distance, contains): a .npy of "
                                  "shape (N, 3), or a .txt/.csv of three numbers a row; rays "
-                                 "(count-hits, all-hits): shape (N, 6), ox oy oz dx dy dz a row")
-    p.add_argument("-o", "--output", default=None, metavar="OUT.npz",
-                   help="write every answer to this file (the arrays each kind lists in the "
-                        "summary's wrote: line)")
+                                 "(closest-hit, any-hit, count-hits, all-hits): shape (N, 6), "
+                                 "ox oy oz dx dy dz a row")
+    p.add_argument("-o", "--output", default=None, metavar="OUT",
+                   help="write every answer to this file, in the format its suffix names: .npz "
+                        "(the arrays the summary's wrote: line lists), .csv or .txt (a row per "
+                        "point or ray, a row per hit for all-hits, with a header)")
     p.add_argument("--max-distance", type=float, default=float("inf"), metavar="R",
                    help="closest: search radius, beyond it a point finds nothing (default: none)")
     p.add_argument("--max-hits", type=int, default=None, metavar="K",

@@ -328,7 +328,7 @@ def test_query_closest_writes_the_answers_of_closest_points(capsys, tmp_path):
     rng = np.random.default_rng(0)
     points = rng.uniform(-3, 3, (500, 3)).astype(np.float32)
     np.save(tmp_path / "points.npy", points)
-    out = tmp_path / "near"            # written as named, no suffix added
+    out = tmp_path / "near.npz"
     assert main(["query", "closest", "teapot", str(tmp_path / "points.npy"), "-o", str(out)]) == 0
     text = capsys.readouterr().out
     assert "points:    500 from" in text and "wrote:" in text
@@ -554,3 +554,97 @@ def test_query_through_a_file_of_placed_meshes(capsys, tmp_path):
     assert main(["query", "count-hits", str(tmp_path / "sheared.glb"),
                  str(tmp_path / "rays.npy")]) == 0
     assert main(["query", "contains", str(tmp_path / "sheared.glb"), str(tmp_path / "p.npy")]) == 0
+
+
+# -- lbvh query: ray kinds, output formats, wording ----------------------------------
+
+def _teapot_rays(tmp_path, n, seed=3):
+    import lbvh
+    v, f = lbvh.data.teapot()
+    rng = np.random.default_rng(seed)
+    o = rng.uniform(-4, 4, (n, 3)).astype(np.float32)
+    d = (v[rng.integers(0, len(v), n)] - o).astype(np.float32)
+    np.save(tmp_path / "rays.npy", np.hstack([o, d]))
+    return lbvh.build(v, f), o, d
+
+
+def test_query_closest_and_any_hit_in_every_output_format(capsys, tmp_path):
+    bvh, o, d = _teapot_rays(tmp_path, 300)
+    want = bvh.intersect(o, d)
+    assert main(["query", "closest-hit", "teapot", str(tmp_path / "rays.npy"), "-o",
+                 str(tmp_path / "h.npz")]) == 0
+    text = capsys.readouterr().out
+    assert f"hit:       {int(want.hit.sum())} rays of 300" in text and "t:  " in text
+    with np.load(tmp_path / "h.npz") as got:
+        for name in ("t", "prim", "u", "v", "hit"):
+            assert np.array_equal(got[name], getattr(want, name)), name
+    for suffix, delimiter in ((".csv", ","), (".txt", None)):
+        out = tmp_path / f"h{suffix}"
+        assert main(["query", "closest-hit", "teapot", str(tmp_path / "rays.npy"), "-o",
+                     str(out)]) == 0
+        capsys.readouterr()
+        header = out.read_text().splitlines()[0]
+        assert header.lstrip("# ").replace(",", " ").split() == ["t", "prim", "u", "v", "hit"]
+        table = np.loadtxt(out, delimiter=delimiter, skiprows=1, ndmin=2)
+        assert np.array_equal(table[:, 0].astype(np.float32), want.t)   # 9 digits: float32 exact
+        assert np.array_equal(table[:, 1], want.prim) and np.array_equal(table[:, 4], want.hit)
+    assert main(["query", "any-hit", "teapot", str(tmp_path / "rays.npy"), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["rays_hit"] == int(bvh.occluded(o, d).sum()) and summary["rays"] == 300
+
+
+def test_query_all_hits_as_a_table_has_a_row_per_hit(capsys, tmp_path):
+    bvh, o, d = _teapot_rays(tmp_path, 100)
+    want = bvh.all_hits(o, d)
+    assert main(["query", "all-hits", "teapot", str(tmp_path / "rays.npy"), "-o",
+                 str(tmp_path / "all.csv")]) == 0
+    capsys.readouterr()
+    table = np.loadtxt(tmp_path / "all.csv", delimiter=",", skiprows=1, ndmin=2)
+    assert (tmp_path / "all.csv").read_text().splitlines()[0] == "ray,t,prim,u,v"
+    assert len(table) == len(want.t)
+    assert np.array_equal(table[:, 0], np.repeat(np.arange(100), np.diff(want.offsets)))
+    assert np.array_equal(table[:, 2], want.prim)
+
+
+@pytest.mark.parametrize("name", ["out.xyz", "out", "out.npy"])
+def test_query_output_of_an_unknown_format_is_refused_before_the_build(capsys, tmp_path, name):
+    _teapot_rays(tmp_path, 4)
+    code, _, err = _run(capsys, "query", "closest-hit", "teapot", str(tmp_path / "rays.npy"),
+                        "-o", str(tmp_path / name))
+    _assert_one_line_error(code, err, "no output format for")
+    assert ".npz, .csv or .txt" in err and not (tmp_path / name).exists()
+
+
+def test_query_wording_for_one_ray_and_one_point(capsys, tmp_path):
+    _teapot_rays(tmp_path, 1, seed=5)
+    assert main(["query", "count-hits", "teapot", str(tmp_path / "rays.npy")]) == 0
+    text = capsys.readouterr().out
+    assert "rays:      1 from" in text and "1 rays" not in text
+    assert " ray hit" in text or "0 rays hit" in text
+    np.save(tmp_path / "p.npy", np.zeros((1, 3), np.float32))
+    assert main(["query", "closest", "teapot", str(tmp_path / "p.npy")]) == 0
+    line = [x for x in capsys.readouterr().out.splitlines() if x.startswith("query:")][0]
+    assert "points/s" in line and "0.00 M" not in line
+
+
+def test_plural_and_rate_wording():
+    from lbvh.cli import plural, rate
+    assert plural(1, "ray") == "1 ray" and plural(0, "ray") == "0 rays"
+    assert plural(2048, "point") == "2,048 points"
+    assert rate(1, 1e-4, "ray") == "10 k rays/s"
+    assert rate(5, 1.0, "point") == "5 points/s"
+    assert rate(3_000_000, 0.5, "ray") == "6 M rays/s"
+
+
+def test_the_first_use_of_a_device_says_it_is_compiling_and_testing(tmp_path):
+    """A fresh cache: lbvh info says on stderr that the wait is the one-time self-test
+    and compile; the next run, with the answer kept, says nothing of it."""
+    env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path / "xdg"))
+    env.pop("LBVH_SELF_TEST", None)
+    runs = [subprocess.run([sys.executable, "-m", "lbvh.cli", "info", "teapot"], cwd=tmp_path,
+                           env=env, capture_output=True, text=True, timeout=600)
+            for _ in range(2)]
+    for proc in runs:
+        assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "first use of" in runs[0].stderr and "self-test" in runs[0].stderr
+    assert "first use of" not in runs[1].stderr

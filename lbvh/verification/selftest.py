@@ -41,7 +41,7 @@ from ..builders.morton import morton_codes, morton_codes_numpy
 from ..builders.pipeline import build_tree
 from ..builders.refit import refit_numpy
 from ..bvh import BVH
-from ..device.pocl_target import target_cpu
+from ..device.pocl_target import fix_target_cpu, target_cpu
 from ..device.sort import radix_sort, radix_sort_numpy
 from ..layout import NODE_DTYPE, children_of
 from ..queries.traverse import intersect
@@ -181,12 +181,14 @@ def _check(ctx: dev.Context, stage=lambda name: None) -> list[str]:
     return problems
 
 
-def _cache_file(ctx: dev.Context) -> Path:
-    """Where the answer for this device, driver, compile target and kernel source is kept."""
+def _cache_file(ctx: dev.Context | Any) -> Path:
+    """Where the answer for this device (a context's, or a ``pyopencl.Device``), driver,
+    compile target and kernel source is kept."""
+    device = ctx.device if isinstance(ctx, dev.Context) else ctx
     h = hashlib.sha1()
     for name in sorted(p.name for p in dev.kernels_dir().iterdir() if p.suffix in (".cl", ".h")):
         h.update(name.encode() + (dev.kernels_dir() / name).read_bytes())
-    h.update(repr((device_key(ctx.device), target_cpu(ctx.device), __version__)).encode())
+    h.update(repr((device_key(device), target_cpu(device), __version__)).encode())
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "lbvh" / "selftest" / f"{h.hexdigest()}.json"
 
@@ -259,6 +261,20 @@ def self_test(ctx: dev.Context) -> SelfTest:
                 pass   # a read-only home: the test runs again next time
         _results[key] = result
         return result
+
+
+def pending(device: Any) -> bool:
+    """Whether this process's first context on ``device`` (a ``pyopencl.Device``) will
+    run the self-test, compiling the build's kernels in a child process (a few
+    seconds): it is enabled and no earlier run on this device, driver, compile target
+    and kernel source kept its answer. The command line says so before it waits."""
+    if not enabled() or os.environ.get(ENV_SELF_TEST) == "child":
+        return False
+    with _lock:
+        if device_key(device) in _results:
+            return False
+    fix_target_cpu(device)   # what the context would set first: part of the answer's key
+    return not _cache_file(device).is_file()
 
 
 def run_here(ctx: dev.Context) -> SelfTest:
