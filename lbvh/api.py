@@ -278,6 +278,11 @@ def load(path: str | os.PathLike, device: Any = None) -> BVH:
     path = Path(path)
     if not path.is_file():
         raise MissingFileError(f"{path}: no such file" + (" (a folder)" if path.is_dir() else ""))
+    with open(path, "rb") as head:
+        magic = head.read(4)
+    if magic not in (b"PK\x03\x04", b"PK\x05\x06"):   # a zip archive's first entry, or empty
+        raise ValueError(f"{path}: not a saved lbvh BVH (not an .npz archive: "
+                         f"it starts with {magic!r}, not a zip file's b'PK')")
     try:
         data = np.load(path, allow_pickle=False)
     except Exception as exc:  # OSError, ValueError, zipfile.BadZipFile, EOFError...

@@ -97,6 +97,8 @@ class Env:
         data = (t / "good.npz").read_bytes()
         (t / "truncated.npz").write_bytes(data[: len(data) // 2])
         np.savez(t / "other.npz", a=np.zeros(3))
+        np.save(t / "array.npy", np.zeros(3))
+        (t / "text.npz").write_text("0 1 2\n")
         self._tampered("root.npz", root=np.int32(99))
         nodes = self.bvh.nodes.copy()
         nodes["a"][self.bvh.root] = 10 ** 6
@@ -486,6 +488,8 @@ ROWS: list[Row] = [
     _load("absent.npz", "missing file", MissingFileError, "absent.npz: no such file"),
     _load("other.npz", "an .npz of something else",
            ValueError, "other.npz: not a saved lbvh BVH (missing"),
+    _load("text.npz", "a text file", ValueError, "text.npz: not a saved lbvh BVH (not an .npz archive"),
+    _load("array.npy", "a .npy array", ValueError, "array.npy: not a saved lbvh BVH (not an .npz archive"),
     _load("truncated.npz", "truncated file",
            ValueError, "truncated.npz: not a saved lbvh BVH"),
     _load("root.npz", "root outside the nodes", ValueError, "root 99"),
@@ -538,6 +542,9 @@ ROWS: list[Row] = [
     Row("lbvh query", "--max-distance -1", lambda e: [
         "query", "closest", e.path("good.obj"), e.path("points.npy"), "--max-distance=-1"],
         SystemExit, "max_distance: -1.0", command=True),
+    Row("lbvh query", "output format .xyz", lambda e: [
+        "query", "closest", e.path("good.obj"), e.path("points.npy"), "-o", e.path("out.xyz")],
+        SystemExit, "no output format for .xyz", command=True),
     Row("lbvh render", "--mode xray", lambda e: [
         "render", e.path("good.obj"), "-o", e.path("out.png"), "--mode", "xray"], SystemExit,
         "invalid choice: 'xray'", command=True),
