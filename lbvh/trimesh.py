@@ -9,6 +9,9 @@
     locations, index_ray, index_tri = mesh.ray.intersects_location(origins, directions)
     inside = mesh.contains(points)        # trimesh calls mesh.ray.contains_points
 
+The constructor takes what trimesh's two intersectors take (the mesh first, or as
+``geometry=`` or ``mesh=``; embree's ``scale_to_box``, which changes nothing here)
+and refuses anything that is not a mesh (a ``trimesh.Scene``) with a ``ValueError``.
 The methods have trimesh's names, argument names, return values and dtypes:
 ``intersects_id``, ``intersects_location``, ``intersects_first``,
 ``intersects_any`` and ``contains_points``, and the ``mesh`` attribute. The
@@ -205,9 +208,17 @@ class RayMeshIntersector:
 
     Parameters
     ----------
-    mesh : trimesh.Trimesh
+    geometry : trimesh.Trimesh
         The mesh (anything with ``vertices (V, 3)`` and ``faces (F, 3)``); kept as
-        :attr:`mesh`, read again whenever it changes.
+        :attr:`mesh`, read again whenever it changes. Also accepted by the name
+        ``mesh=`` (``ray_triangle``'s). Anything else (a ``trimesh.Scene``, a
+        ``PointCloud``) is refused here with a ``ValueError``.
+    scale_to_box : bool
+        Accepted as trimesh's embree intersector takes it, and changes nothing:
+        embree scales the mesh to about a unit box to keep float32's precision,
+        which lbvh's decisions do not need (the same hits at every scale; the
+        BVH is built over the vertices less their box's centre, as embree's
+        wrapper does, and each location recomputed in float64).
     device : optional
         The OpenCL device for :func:`lbvh.build` (a name, a ``pyopencl.Device``;
         ``None``: ``$LBVH_DEVICE`` or PoCL's CPU device).
@@ -218,8 +229,23 @@ class RayMeshIntersector:
         The mesh queried (trimesh's ``contains_points`` helpers read ``mesh.bounds``).
     """
 
-    def __init__(self, mesh: Any, *, device: Any = None) -> None:
+    def __init__(self, geometry: Any = None, scale_to_box: bool = True, *, mesh: Any = None,
+                 device: Any = None) -> None:
+        if (geometry is None) == (mesh is None):
+            raise ValueError("RayMeshIntersector: pass the mesh once, as geometry (first "
+                             "argument) or mesh=" + ("" if geometry is None else
+                                                     ", not both"))
+        mesh = geometry if mesh is None else mesh
+        if not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")):
+            hint = (": merge it into one mesh first (scene.to_mesh()), or query its "
+                    "instances with lbvh.build(scene)" if hasattr(mesh, "geometry") else "")
+            raise ValueError(f"RayMeshIntersector: a {type(mesh).__module__}."
+                             f"{type(mesh).__name__} is not a mesh (it has no vertices and "
+                             f"faces){hint}")
+        if not isinstance(scale_to_box, (bool, np.bool_)):
+            raise ValueError(f"scale_to_box: {scale_to_box!r}; expected True or False")
         self.mesh = mesh
+        self._scale_to_box = bool(scale_to_box)
         self._device = device
         self._lock = threading.Lock()
         self._geometry_cache: _Geometry | None = None
@@ -403,10 +429,11 @@ class RayMeshIntersector:
 
     # -- copies and pickles: the mesh travels, the BVH is built again --------------
     def __getstate__(self) -> dict[str, Any]:
-        return {"mesh": self.mesh, "device": self._device}
+        return {"mesh": self.mesh, "device": self._device, "scale_to_box": self._scale_to_box}
 
     def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__init__(state["mesh"], device=state["device"])  # type: ignore[misc]
+        self.__init__(state["mesh"], state.get("scale_to_box", True),  # type: ignore[misc]
+                      device=state["device"])
 
     def __repr__(self) -> str:
         faces = getattr(self.mesh, "faces", None)

@@ -398,6 +398,34 @@ def test_copies_and_pickles_rebuild_over_their_mesh():
 
 
 # -- options and bad input ---------------------------------------------------------
+def test_the_constructor_takes_what_trimeshs_intersectors_take():
+    """trimesh's ray_triangle takes ``(mesh)``, its embree one ``(geometry,
+    scale_to_box=True)``: every spelling builds the same intersector, whose answers
+    scale_to_box does not change (lbvh needs no rescaling)."""
+    mesh = make_mesh("teapot")
+    o, d = make_rays(mesh, 200, seed=9, near_axes=False)
+    want = RayMeshIntersector(mesh).intersects_first(o, d)
+    for ray in (RayMeshIntersector(mesh, True), RayMeshIntersector(geometry=mesh),
+                RayMeshIntersector(mesh=mesh, scale_to_box=False),
+                RayMeshIntersector(geometry=mesh, scale_to_box=False),   # embree's names
+                pickle.loads(pickle.dumps(RayMeshIntersector(mesh, False)))):
+        assert ray.mesh is mesh or ray.mesh.faces.shape == mesh.faces.shape
+        assert np.array_equal(ray.intersects_first(o, d), want)
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda m: dict(geometry=trimesh.Scene([m])), r"a trimesh\.scene\.scene\.Scene is not a "
+                                                  r"mesh .*scene\.to_mesh\(\).*lbvh\.build\(scene\)"),
+    (lambda m: dict(geometry=trimesh.PointCloud(m.vertices)), "PointCloud is not a mesh"),
+    (lambda m: dict(geometry=None), "pass the mesh once"),
+    (lambda m: dict(geometry=m, mesh=m), "not both"),
+    (lambda m: dict(geometry=m, scale_to_box="yes"), "scale_to_box: 'yes'"),
+])
+def test_the_constructor_refuses_what_is_not_a_mesh(make, match):
+    with pytest.raises(ValueError, match=match):
+        RayMeshIntersector(**make(make_mesh("box")))
+
+
 def test_max_hits_keeps_the_nearest():
     mesh = make_mesh("teapot")
     ray = RayMeshIntersector(mesh)
