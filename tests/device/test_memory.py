@@ -88,3 +88,32 @@ def test_a_dropped_bvh_gives_its_tree_and_caches_back(ctx):
     del bvh
     gc.collect()
     assert ctx.memory.in_use == before
+
+
+def test_host_outputs_are_aligned_views_that_one_map_reads(ctx):
+    """DeviceMemory.host_outputs: one block of host memory, an array per spec at a
+    multiple of the device's sub-buffer alignment (read from the device), a sub-buffer
+    on each; what the device writes to the sub-buffers is the arrays' after one map of
+    the block. An empty spec is refused."""
+    import pyopencl as cl
+    import pytest
+    from lbvh import device as dev
+
+    mem = ctx.memory
+    assert mem.sub_align == ctx.device.mem_base_addr_align // 8
+    specs = (((4, 3), np.float32), ((3,), np.int32), ((5,), np.uint8))
+    out = mem.host_outputs(*specs)
+    try:
+        base = out.block.ctypes.data
+        for (shape, dtype), a, b in zip(specs, out.arrays, out.buffers):
+            assert a.shape == shape and a.dtype == dtype and a.flags.c_contiguous
+            assert (a.ctypes.data - base) % mem.sub_align == 0 and b.size == a.nbytes
+        for k, b in enumerate(out.buffers):
+            cl.enqueue_fill_buffer(ctx.queue, b, np.uint8(k + 1), 0, b.size)
+        dev.read_host_views(ctx.queue, [(out.block_buffer, out.block)])
+        for k, a in enumerate(out.arrays):
+            assert (a.view(np.uint8) == k + 1).all()
+    finally:
+        out.release()
+    with pytest.raises(ValueError, match="empty"):
+        mem.host_outputs(((0, 3), np.float32))
