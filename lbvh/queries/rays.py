@@ -245,6 +245,45 @@ def _raise_first_bad(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarra
             raise ValueError(message.format(i=i, lo=float(lo[i]), hi=float(hi[i])))
 
 
+#: Largest finite float32.
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+#: Up to this many rays, :func:`_plain_rays` checks with whole-array masks (a few numpy
+#: calls) rather than the temporary-free reductions of the general path.
+_PLAIN_RAYS = 4096
+
+
+def _plain_interval(value: Any) -> float | None:
+    """A Python or numpy real scalar that float32 holds (or an infinity, or NaN) as
+    the float it becomes in float32; ``None`` for anything else."""
+    if isinstance(value, bool) or not isinstance(value, (float, int, np.floating, np.integer)):
+        return None
+    x = float(value)
+    if abs(x) > _FLOAT32_MAX and x not in (np.inf, -np.inf):
+        return None   # rounds to float32's largest value or to infinity: the general path
+    return float(np.float32(x))
+
+
+def _plain_rays(origins: Any, directions: Any, tmin: Any, tmax: Any) -> Rays | None:
+    """:func:`check_rays` of the common small call, in a few numpy calls: float32
+    C-contiguous ``(N, 3)`` arrays (N at most :data:`_PLAIN_RAYS`), scalar intervals,
+    every ray good. ``None`` where any of that fails: the general path then checks (and
+    names the problem) as before. The same rules, so the same rays pass."""
+    if type(origins) is not np.ndarray or type(directions) is not np.ndarray:
+        return None
+    if origins.dtype != np.float32 or directions.dtype != np.float32 \
+            or origins.ndim != 2 or origins.shape[1] != 3 or directions.shape != origins.shape \
+            or len(origins) > _PLAIN_RAYS or not origins.flags.c_contiguous \
+            or not directions.flags.c_contiguous:
+        return None
+    lo, hi = _plain_interval(tmin), _plain_interval(tmax)
+    if lo is None or hi is None or not (0 <= lo < np.inf and lo <= hi):   # NaN fails too
+        return None
+    if not (np.isfinite(origins).all() and np.isfinite(directions).all()
+            and (directions != 0).any(axis=1).all()):
+        return None
+    return Rays(origins, directions, np.array(lo, np.float32), np.array(hi, np.float32))
+
+
 def check_rays(origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
                invalid_rays: InvalidRays = "raise") -> Rays:
     """Validate rays and convert them to the float32 arrays the kernel reads.
@@ -257,6 +296,9 @@ def check_rays(origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.in
     C-contiguous already, no temporary while every ray is good).
     """
     check_invalid_rays(invalid_rays)
+    fast = _plain_rays(origins, directions, tmin, tmax)
+    if fast is not None:
+        return fast
     given_o = _real("origins", origins)
     o = _ray_vectors("origins", given_o, None)
     given_d = _real("directions", directions)

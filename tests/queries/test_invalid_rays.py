@@ -88,6 +88,42 @@ def test_the_mask_is_exactly_what_the_default_refuses(what, o, d, tmin, tmax, ba
     assert (rays.invalid is not None) == bad
 
 
+@pytest.mark.parametrize("what, o, d, tmin, tmax, bad", CASES, ids=[c[0] for c in CASES])
+def test_the_small_call_path_passes_exactly_the_good_rays(what, o, d, tmin, tmax, bad):
+    """check_rays' path for small float32 calls with scalar intervals (rays._plain_rays)
+    passes exactly the good rays, as the arrays the general path makes; a bad ray goes on
+    to the general path, which names it."""
+    from lbvh.queries.rays import _plain_rays
+    for lo, hi in ((tmin, tmax), (np.float64(tmin), np.float32(tmax)), (np.float32(tmin), tmax)):
+        fast = _plain_rays(np.float32([o]), np.float32([d]), lo, hi)
+        assert (fast is None) == bad
+        if bad:
+            with pytest.raises(ValueError):
+                check_rays(np.float32([o]), np.float32([d]), lo, hi)
+            continue
+        general = check_rays(np.float64([o]), np.float64([d]), np.float64(lo), np.float64(hi))
+        for name in ("origins", "directions", "tmin", "tmax"):
+            a, b = getattr(fast, name), getattr(general, name)
+            assert a.dtype == b.dtype == np.float32 and a.shape == b.shape
+            assert a.tobytes() == b.tobytes(), name
+
+
+@pytest.mark.parametrize("tmin, tmax", [(0.0, 1e300), (0, 2**62 + 1), (2**24 + 1, np.inf),
+                                        (0.0, np.float64(FMAX) * (1 + 2**-30))])
+def test_intervals_float32_does_not_hold_take_the_general_path(tmin, tmax):
+    """Intervals beyond float32 (or an int it rounds) are converted as the general path
+    converts them, without a warning, whichever path the call takes."""
+    from lbvh.queries.rays import _plain_rays
+    o, d = np.zeros((1, 3), np.float32), np.float32([[1, 0, 0]])
+    general = check_rays(o.tolist(), d.tolist(), np.float64(tmin), np.float64(tmax))
+    with np.errstate(all="raise"):
+        got = check_rays(o, d, tmin, tmax)
+    assert got.tmin.tobytes() == general.tmin.tobytes()
+    assert got.tmax.tobytes() == general.tmax.tobytes()
+    if np.isfinite(float(tmax)) and abs(float(tmax)) > FMAX:
+        assert _plain_rays(o, d, tmin, tmax) is None
+
+
 @pytest.mark.parametrize("query", ["intersect", "occluded"])
 def test_bad_rays_are_misses_and_the_others_are_traced_as_alone(query):
     bvh = teapot()
