@@ -33,10 +33,19 @@ class Launch:
         return None if self.local_size is None else (self.local_size,)
 
 
+#: kernel_arg's conversions of the plain Python scalars, by exact type (the common case,
+#: one dict lookup; subclasses and numpy booleans take the general path).
+_PLAIN_ARGS: dict[type, Any] = {int: np.int32, float: np.float32,
+                                bool: lambda value: np.int32(bool(value))}
+
+
 def kernel_arg(value: Any) -> Any:
     """A kernel argument as OpenCL takes it: Python ``bool``/``int`` as ``int32``,
     ``float`` as ``float32``; numpy scalars (``float64`` too, a subclass of ``float``)
     and buffers as they are."""
+    plain = _PLAIN_ARGS.get(type(value))
+    if plain is not None:
+        return plain(value)
     if isinstance(value, (bool, np.bool_)):
         return np.int32(bool(value))
     if isinstance(value, int):
@@ -60,8 +69,10 @@ def arg_type(value: Any) -> Any:
     return None
 
 
-#: The attribute of a kernel object that holds the argument types declared for it.
+#: The attribute of a kernel object that holds the argument types declared for it, and
+#: the Python types of the values they were declared from (a cheaper test of "same").
 _DECLARED = "_lbvh_arg_types"
+_KINDS = "_lbvh_arg_kinds"
 
 
 def declare_arg_types(knl: cl.Kernel, values: Sequence[Any]) -> None:
@@ -70,10 +81,16 @@ def declare_arg_types(knl: cl.Kernel, values: Sequence[Any]) -> None:
     its generic ``set_arg`` takes 9-15 us a scalar (a launch of the traversal's 20
     arguments: 64 us of the 0.5 ms a one-ray query took; measured on PoCL 3, Zen 3).
     The caller holds the context's lock."""
+    kinds = tuple(map(type, values))
+    if getattr(knl, _KINDS, None) == kinds:
+        return   # the same Python types: the same declared types (no vector values here)
     types = tuple(arg_type(v) for v in values)
     if getattr(knl, _DECLARED, None) != types:
         knl.set_scalar_arg_dtypes(list(types))
         setattr(knl, _DECLARED, types)
+    # A numpy array's (or void scalar's) declared type is its size, not its type: never
+    # matched by kind.
+    setattr(knl, _KINDS, None if np.ndarray in kinds or np.void in kinds else kinds)
 
 
 def run(ctx: "Context", filename: str, name: str, launch: Launch, *args: Any,

@@ -27,6 +27,11 @@ __kernel void args(__global float *out, const int i, const uint u, const float f
     out[3] = v.x + 2.0f * v.y + 4.0f * v.z + 8.0f * v.w;
     out[4] = in[0];
 }
+
+__kernel void scalars(__global float *out, const int i, const float f) {
+    out[0] = (float)i;
+    out[1] = f;
+}
 """
 
 
@@ -78,6 +83,30 @@ def test_a_value_of_another_size_is_refused_as_before(kernels, ctx):
         # and the kernel's declared types follow the values again afterwards
         got = launch(ctx, out, 7, np.uint32(8), 9.0, v, 10.0)
         np.testing.assert_array_equal(got[[0, 1, 2, 4]], np.float32([7, 8, 9, 10]))
+    finally:
+        ctx.memory.free(out)
+
+
+def test_declared_types_follow_the_values_without_vector_arguments(kernels, ctx):
+    """A kernel of scalars and buffers only: run() skips re-declaring while the values'
+    Python types repeat, and re-declares when they change (an int64 is refused by the
+    runtime, then an int32 passes again)."""
+    out = ctx.memory.alloc(8)
+    got = np.empty(2, np.float32)
+
+    def call(i, f):
+        dev.run(ctx, "launch_args.cl", "scalars", ctx.launch_chunks(1, 1), out, i, f)
+        cl.enqueue_copy(ctx.queue, got, out, is_blocking=True)
+        return got.tolist()
+    try:
+        for k in range(5):
+            assert call(k if k % 2 else np.int32(k), float(k) / 2) == [k, k / 2]
+        with pytest.raises(cl.Error, match="INVALID_ARG_SIZE"):
+            call(np.int64(1), 1.0)
+        assert call(7, np.float32(3.5)) == [7, 3.5]
+        with pytest.raises(cl.Error, match="INVALID_ARG_SIZE"):
+            call(1, np.float64(1.0))
+        assert call(np.int32(9), 4.5) == [9, 4.5]
     finally:
         ctx.memory.free(out)
 
