@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/bench_ab.py --other /path/to/other/checkout
         [--scenes bunny sponza terrain-1m] [--rays 1024x1024] [--rounds 4] [--repeats 3]
-        [--queries closest any winding] [--points 262144]
+        [--queries closest any winding one thousand] [--points 262144]
 
 lbvh cannot be imported twice in one process, so each round runs one worker
 process per checkout (in alternating order from round to round), each timing
@@ -10,11 +10,14 @@ process per checkout (in alternating order from round to round), each timing
 API on the default ``lbvh.build`` tree, on the bench camera's primary rays
 (``lbvh/data/cameras.json``), the median of ``--repeats`` calls after one untimed
 call. ``winding`` times ``bvh.winding_numbers`` at ``--points`` points drawn
-uniformly from the scene's box grown by a tenth each side (seed 0). The report
-gives each checkout's median over the rounds and the ratio this / other (above
-1: this checkout is slower), with the answers' agreement: the fraction of rays
-with the same answer (closest hit: the same triangle or miss; any hit: the same
-bool; winding: the same side of 1/2) and with the same bits (closest hit: ``t``;
+uniformly from the scene's box grown by a tenth each side (seed 0). ``one`` and
+``thousand`` time ``bvh.intersect`` of 1 and 1,000 of the camera's rays picked
+evenly over the image (the price of a call: the median of ``100 * --repeats``
+calls after 20 untimed ones). The report gives each checkout's median over the
+rounds and the ratio this / other (above 1: this checkout is slower), with the
+answers' agreement: the fraction of rays with the same answer (closest hit,
+one, thousand: the same triangle or miss; any hit: the same bool; winding: the
+same side of 1/2) and with the same bits (closest hit, one, thousand: ``t``;
 winding: the winding number).
 """
 from __future__ import annotations
@@ -48,20 +51,26 @@ bvh = lbvh.build(scene.vertices, scene.faces)
 lo, hi = scene.vertices.min(axis=0), scene.vertices.max(axis=0)
 pts = (lo - 0.1 * (hi - lo) + 1.2 * (hi - lo) * np.random.default_rng(0).random(
     (int(sys.argv[8]), 3))).astype(np.float32)
+few = {k: np.linspace(0, len(o) - 1, k).astype(np.int64) for k in (1, 1000)}
+o1, d1 = o[few[1]], d[few[1]]
+ok, dk = o[few[1000]], d[few[1000]]
 queries = {"closest": lambda: bvh.intersect(o, d), "any": lambda: bvh.occluded(o, d),
-           "winding": lambda: bvh.winding_numbers(pts)}
+           "winding": lambda: bvh.winding_numbers(pts),
+           "one": lambda: bvh.intersect(o1, d1), "thousand": lambda: bvh.intersect(ok, dk)}
 out = {}
 for name in sys.argv[7].split(","):
     fn = queries[name]
-    fn()
+    for _ in range(1 if name in ("closest", "any", "winding") else 20):
+        fn()
     times = []
-    for _ in range(int(sys.argv[5])):
+    calls = int(sys.argv[5]) * (1 if name in ("closest", "any", "winding") else 100)
+    for _ in range(calls):
         t0 = time.perf_counter(); r = fn(); times.append(time.perf_counter() - t0)
     out[name] = sorted(times)[len(times) // 2]
-    res = r.t if name == "closest" else r
+    res = r if name in ("any", "winding") else r.t
     np.save(sys.argv[6] + f"-{name}.npy", res)
-    if name == "closest":
-        np.save(sys.argv[6] + "-prim.npy", r.prim)
+    if name not in ("any", "winding"):
+        np.save(sys.argv[6] + f"-{name}-prim.npy", r.prim)
 print(json.dumps(out))
 """
 
@@ -83,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rounds", type=int, default=4)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--queries", nargs="+", default=["closest", "any"],
-                   choices=["closest", "any", "winding"])
+                   choices=["closest", "any", "winding", "one", "thousand"])
     p.add_argument("--points", type=int, default=1 << 18)
     p.add_argument("--out", type=Path, default=HERE / "out" / "ab")
     args = p.parse_args(argv)
@@ -111,14 +120,16 @@ def main(argv: list[str] | None = None) -> int:
                 same = float(np.mean((a > 0.5) == (b > 0.5)))
                 bits = float(np.mean(a.view(np.uint32) == b.view(np.uint32)))
             else:   # the same triangle (or miss); and t bit for bit
-                same = float(np.mean(np.load(tmp / "this-prim.npy")
-                                     == np.load(tmp / "other-prim.npy")))
+                same = float(np.mean(np.load(tmp / f"this-{q}-prim.npy")
+                                     == np.load(tmp / f"other-{q}-prim.npy")))
                 bits = float(np.mean(a.view(np.uint32) == b.view(np.uint32)))
             ta, tb = statistics.median(times["this"][q]), statistics.median(times["other"][q])
             report.append({"scene": scene, "query": q, "this_s": ta, "other_s": tb,
                            "ratio": ta / tb, "same_answers": same, "same_bits": bits,
                            "rounds": {k: times[k][q] for k in times}})
-            lines.append(f"| {scene} | {q} | {1e3 * ta:.1f} | {1e3 * tb:.1f} | {ta / tb:.3f} | "
+            digits = 1 if q in ("closest", "any", "winding") else 3
+            lines.append(f"| {scene} | {q} | {1e3 * ta:.{digits}f} | {1e3 * tb:.{digits}f} | "
+                         f"{ta / tb:.3f} | "
                          f"{same:.5f} | {bits:.5f} |")
             print(lines[-1], file=sys.stderr)
     args.out.mkdir(parents=True, exist_ok=True)
