@@ -1,4 +1,11 @@
-"""A drop-in ray intersector for ``trimesh``: lbvh's kernels behind trimesh's ray API.
+"""Drop-ins for ``trimesh``: lbvh's kernels behind trimesh's ray and proximity APIs.
+
+:class:`ProximityQuery` (what ``mesh.nearest`` is), :func:`closest_point` and
+:func:`signed_distance` replace ``trimesh.proximity``'s, with its conventions
+(float64 points and distances, int64 triangles, signed distances positive inside)::
+
+    closest, distance, triangle_id = lbvh.trimesh.closest_point(mesh, points)
+    sd = lbvh.trimesh.signed_distance(mesh, points)   # positive inside, as trimesh's
 
 :class:`RayMeshIntersector` replaces ``trimesh.ray.ray_triangle.RayMeshIntersector``
 (and ``trimesh.ray.ray_pyembree.RayMeshIntersector``) with one line::
@@ -85,6 +92,7 @@ from __future__ import annotations
 
 import hashlib
 import threading
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
@@ -93,8 +101,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from .api import build
 from .bvh import BVH
+from .queries.closest import closest_points_numpy, point_triangle_numpy
 
-__all__ = ["RayMeshIntersector"]
+__all__ = ["RayMeshIntersector", "ProximityQuery", "closest_point", "signed_distance"]
 
 # A hit's float64 plane intersection replaces the kernel's float32 distance unless
 # the ray runs within this cosine of the triangle's plane (ill-conditioned) or the
@@ -201,6 +210,50 @@ def _locations(geom: _Geometry, o: NDArray[np.float64], d: NDArray[np.float64],
     return o + t64[:, None] * d
 
 
+def _the_mesh(who: str, geometry: Any, mesh: Any) -> Any:
+    """The mesh given once, as ``geometry`` (first argument) or ``mesh=``, checked to
+    be a mesh (``vertices`` and ``faces``); a ``ValueError`` otherwise."""
+    if (geometry is None) == (mesh is None):
+        raise ValueError(f"{who}: pass the mesh once, as geometry (first argument) or mesh="
+                         + ("" if geometry is None else ", not both"))
+    mesh = geometry if mesh is None else mesh
+    if not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")):
+        hint = (": merge it into one mesh first (scene.to_mesh()), or query its instances "
+                "with lbvh.build(scene)" if hasattr(mesh, "geometry") else "")
+        raise ValueError(f"{who}: a {type(mesh).__module__}.{type(mesh).__name__} is not a "
+                         f"mesh (it has no vertices and faces){hint}")
+    return mesh
+
+
+class _GeometryCache:
+    """The :class:`_Geometry` of a mesh, built on first use and again when the mesh's
+    arrays change (their key, :func:`_geometry_key`), under a lock: threads sharing
+    one drop-in build it once."""
+
+    def __init__(self, device: Any) -> None:
+        self._device = device
+        self._lock = threading.Lock()
+        self._geometry: _Geometry | None = None
+
+    def get(self, mesh: Any) -> _Geometry:
+        # the key is read before the arrays: a mesh changed during a build leaves a
+        # stale key, and the next query rebuilds
+        key = _geometry_key(mesh)
+        geom = self._geometry
+        if geom is not None and geom.key == key:
+            return geom
+        with self._lock:
+            geom = self._geometry
+            if geom is None or geom.key != key:
+                geom = _build(mesh, key, self._device)
+                self._geometry = geom
+            return geom
+
+    @property
+    def state(self) -> str:
+        return "built" if self._geometry is not None else "not built yet"
+
+
 class RayMeshIntersector:
     """Ray queries on a trimesh mesh by lbvh: a drop-in for
     ``trimesh.ray.ray_triangle.RayMeshIntersector`` (see the module docstring for
@@ -231,39 +284,16 @@ class RayMeshIntersector:
 
     def __init__(self, geometry: Any = None, scale_to_box: bool = True, *, mesh: Any = None,
                  device: Any = None) -> None:
-        if (geometry is None) == (mesh is None):
-            raise ValueError("RayMeshIntersector: pass the mesh once, as geometry (first "
-                             "argument) or mesh=" + ("" if geometry is None else
-                                                     ", not both"))
-        mesh = geometry if mesh is None else mesh
-        if not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")):
-            hint = (": merge it into one mesh first (scene.to_mesh()), or query its "
-                    "instances with lbvh.build(scene)" if hasattr(mesh, "geometry") else "")
-            raise ValueError(f"RayMeshIntersector: a {type(mesh).__module__}."
-                             f"{type(mesh).__name__} is not a mesh (it has no vertices and "
-                             f"faces){hint}")
+        self.mesh = _the_mesh("RayMeshIntersector", geometry, mesh)
         if not isinstance(scale_to_box, (bool, np.bool_)):
             raise ValueError(f"scale_to_box: {scale_to_box!r}; expected True or False")
-        self.mesh = mesh
-        self._scale_to_box = bool(scale_to_box)
         self._device = device
-        self._lock = threading.Lock()
-        self._geometry_cache: _Geometry | None = None
+        self._scale_to_box = bool(scale_to_box)
+        self._cache = _GeometryCache(device)
 
     # -- the BVH, built on first use and again when the mesh changes -------------
     def _geometry(self) -> _Geometry:
-        # the key is read before the arrays: a mesh changed during a build leaves a
-        # stale key, and the next query rebuilds
-        key = _geometry_key(self.mesh)
-        geom = self._geometry_cache
-        if geom is not None and geom.key == key:
-            return geom
-        with self._lock:
-            geom = self._geometry_cache
-            if geom is None or geom.key != key:
-                geom = _build(self.mesh, key, self._device)
-                self._geometry_cache = geom
-            return geom
+        return self._cache.get(self.mesh)
 
     @property
     def bvh(self) -> BVH | None:
@@ -417,11 +447,7 @@ class RayMeshIntersector:
         -------
         contains : bool (n,)
         """
-        p = _vectors("points", points)
-        bad = ~np.isfinite(p).all(axis=1)
-        if bad.any():
-            i = _first_bad_row(bad)
-            raise ValueError(f"points: point {i} has a NaN or infinite component {p[i].tolist()}")
+        p = _points(points)
         geom = self._geometry()
         if geom.bvh is None or len(p) == 0:
             return np.zeros(len(p), dtype=bool)
@@ -438,5 +464,161 @@ class RayMeshIntersector:
     def __repr__(self) -> str:
         faces = getattr(self.mesh, "faces", None)
         count = len(faces) if faces is not None else 0
-        built = "built" if self._geometry_cache is not None else "not built yet"
-        return f"<lbvh.trimesh.RayMeshIntersector: {count} triangles, BVH {built}>"
+        return f"<lbvh.trimesh.RayMeshIntersector: {count} triangles, BVH {self._cache.state}>"
+
+
+# -- proximity: trimesh.proximity's calls -------------------------------------------------
+
+#: trimesh's ``tol.merge``: a point this close to the surface has a positive signed
+#: distance in trimesh's convention, whatever side it is on.
+_ON_SURFACE = 1e-8
+
+
+def _points(points: ArrayLike) -> NDArray[np.float64]:
+    p = _vectors("points", points)
+    bad = ~np.isfinite(p).all(axis=1)
+    if bad.any():
+        i = _first_bad_row(bad)
+        raise ValueError(f"points: point {i} has a NaN or infinite component {p[i].tolist()}")
+    return p
+
+
+class ProximityQuery:
+    """Proximity queries on a trimesh mesh by lbvh: a drop-in for
+    ``trimesh.proximity.ProximityQuery`` (what ``mesh.nearest`` is), with trimesh's
+    conventions: float64 points and distances, int64 triangle indices, and a signed
+    distance positive inside.
+
+    The closest triangle is found by lbvh's walk (``bvh.closest_points``, float32,
+    on the vertices less their box's centre, as the ray drop-in builds them); the
+    closest point and the distance are then recomputed in float64 on that triangle,
+    as trimesh computes them. Where two triangles are within float32 rounding of the
+    same distance either may be reported (trimesh picks between two such by their
+    normals); the distance agrees with trimesh's to that rounding. A point whose
+    walk overflowed its stack is answered by the float64 brute force. Inside is
+    lbvh's winding number (at least 1/2), where trimesh casts rays: the two agree
+    for points clearly inside or outside a closed mesh. A mesh without faces has
+    no closest point: NaN points, infinite distances, triangle -1 (trimesh fails).
+    NaN or infinite points are refused with a ``ValueError`` naming the first.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        Anything with ``vertices (V, 3)`` and ``faces (F, 3)``; read again when it
+        changes (the BVH is rebuilt), as :class:`RayMeshIntersector` does.
+    device : optional
+        The OpenCL device for :func:`lbvh.build`.
+    """
+
+    def __init__(self, mesh: Any, *, device: Any = None) -> None:
+        self._mesh = _the_mesh("ProximityQuery", mesh, None)
+        self._device = device
+        self._cache = _GeometryCache(device)
+
+    def on_surface(self, points: ArrayLike
+                   ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+        """For each point the closest point on the mesh.
+
+        Parameters
+        ----------
+        points : (m, 3) float
+            Points in space.
+
+        Returns
+        -------
+        closest : (m, 3) float64
+            The closest point of the mesh to each point.
+        distance : (m,) float64
+            The distance to it.
+        triangle_id : (m,) int64
+            The triangle it lies on.
+        """
+        return self._closest(_points(points))[:3]
+
+    def signed_distance(self, points: ArrayLike) -> NDArray[np.float64]:
+        """The distance of each point to the mesh, in trimesh's sign: positive inside,
+        negative outside, positive within ``1e-8`` (trimesh's ``tol.merge``) of the
+        surface.
+
+        Parameters
+        ----------
+        points : (n, 3) float
+            Points in space.
+
+        Returns
+        -------
+        signed_distance : (n,) float64
+        """
+        p = _points(points)
+        _, distance, _, geom = self._closest(p)
+        if geom.bvh is None or len(p) == 0:
+            return -distance
+        inside = np.asarray(geom.bvh.contains(p - geom.center), dtype=bool).reshape(len(p))
+        signed = np.where(inside, distance, -distance)
+        near = distance <= _ON_SURFACE
+        signed[near] = distance[near]
+        return signed
+
+    def vertex(self, points: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        """The closest vertex of each point: ``(distance, vertex_id)``, by trimesh's own
+        ``mesh.kdtree`` (scipy), as trimesh answers it: a nearest vertex is no
+        triangle query."""
+        return self._mesh.kdtree.query(_points(points))
+
+    def _closest(self, p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64],
+                                                         NDArray[np.int64], _Geometry]:
+        geom = self._cache.get(self._mesh)
+        n = len(p)
+        if geom.bvh is None or n == 0:
+            return (np.full((n, 3), np.nan), np.full(n, np.inf), np.full(n, -1, np.int64), geom)
+        got = geom.bvh.closest_points(p - geom.center)
+        tri = got.prim.astype(np.int64)
+        if got.overflow_count:   # never a guess: the float64 brute force for those points
+            redo = np.flatnonzero(got.overflow | (tri < 0))
+            tri[redo] = closest_points_numpy(geom.vertices, geom.faces, p[redo])[2]
+        corners = geom.vertices[geom.faces[tri]]
+        closest = point_triangle_numpy(p, corners[:, 0], corners[:, 1], corners[:, 2])
+        return closest, np.linalg.norm(p - closest, axis=1), tri, geom
+
+    # -- copies and pickles: the mesh travels, the BVH is built again --------------
+    def __getstate__(self) -> dict[str, Any]:
+        return {"mesh": self._mesh, "device": self._device}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__init__(state["mesh"], device=state["device"])  # type: ignore[misc]
+
+    def __repr__(self) -> str:
+        faces = getattr(self._mesh, "faces", None)
+        count = len(faces) if faces is not None else 0
+        return f"<lbvh.trimesh.ProximityQuery: {count} triangles, BVH {self._cache.state}>"
+
+
+_queries: "weakref.WeakKeyDictionary[Any, ProximityQuery]" = weakref.WeakKeyDictionary()
+_queries_lock = threading.Lock()
+
+
+def _query_of(mesh: Any) -> ProximityQuery:
+    """One :class:`ProximityQuery` per mesh object (kept while the mesh lives), so that
+    repeated calls of the functions below build the BVH once."""
+    with _queries_lock:
+        try:
+            query = _queries.get(mesh)
+        except TypeError:   # not weak-referenceable: a query for this call only
+            return ProximityQuery(mesh)
+        if query is None:
+            query = _queries[mesh] = ProximityQuery(mesh)
+        return query
+
+
+def closest_point(mesh: Any, points: ArrayLike
+                  ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """``trimesh.proximity.closest_point(mesh, points)`` by lbvh: ``(closest (m, 3),
+    distance (m,), triangle_id (m,))``, float64, float64, int64
+    (:meth:`ProximityQuery.on_surface`)."""
+    return _query_of(mesh).on_surface(points)
+
+
+def signed_distance(mesh: Any, points: ArrayLike) -> NDArray[np.float64]:
+    """``trimesh.proximity.signed_distance(mesh, points)`` by lbvh: float64, positive
+    inside (:meth:`ProximityQuery.signed_distance`)."""
+    return _query_of(mesh).signed_distance(points)
