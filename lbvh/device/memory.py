@@ -212,26 +212,24 @@ class DeviceMemory:
         per array (35-40 us each for a one-ray query on PoCL). Each array starts at a
         multiple of :attr:`sub_align`, as sub-buffers must. The caller releases
         ``out.buffers`` and ``out.block_buffer``."""
-        offsets, end = [], 0
-        for shape, dtype in specs:
-            offsets.append(end)
-            nbytes = math.prod(shape) * np.dtype(dtype).itemsize
-            if nbytes == 0:
-                raise ValueError("host_outputs: an empty array")
-            end += -(-nbytes // self.sub_align) * self.sub_align
-        block = np.empty(end, np.uint8)
+        sizes = [math.prod(shape) * np.dtype(dtype).itemsize for shape, dtype in specs]
+        if 0 in sizes:
+            raise ValueError("host_outputs: an empty array")
+        offsets = [0]
+        for nbytes in sizes[:-1]:
+            offsets.append(offsets[-1] + -(-nbytes // self.sub_align) * self.sub_align)
+        block = np.empty(offsets[-1] + sizes[-1], np.uint8)
         parent = self.host_view(block, output=True)
         arrays, subs = [], []
         try:
-            for (shape, dtype), at in zip(specs, offsets):
-                nbytes = math.prod(shape) * np.dtype(dtype).itemsize
+            for (shape, dtype), at, nbytes in zip(specs, offsets, sizes):
                 arrays.append(block[at:at + nbytes].view(dtype).reshape(shape))
                 subs.append(parent.get_sub_region(at, nbytes, cl.mem_flags.WRITE_ONLY))
         except cl.Error as exc:
             for b in subs:
                 b.release()
             parent.release()
-            raise DeviceError(f"lbvh: sub-buffers of {end:,} bytes of host memory on "
+            raise DeviceError(f"lbvh: sub-buffers of {block.nbytes:,} bytes of host memory on "
                               f"{self._name} failed: {exc}") from exc
         return HostOutputs(arrays, subs, block, parent)
 

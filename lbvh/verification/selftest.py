@@ -181,10 +181,9 @@ def _check(ctx: dev.Context, stage=lambda name: None) -> list[str]:
     return problems
 
 
-def _cache_file(ctx: dev.Context | Any) -> Path:
-    """Where the answer for this device (a context's, or a ``pyopencl.Device``), driver,
-    compile target and kernel source is kept."""
-    device = ctx.device if isinstance(ctx, dev.Context) else ctx
+def _cache_file(device: Any) -> Path:
+    """Where the answer for this device (a ``pyopencl.Device``), driver, compile target
+    and kernel source is kept."""
     h = hashlib.sha1()
     for name in sorted(p.name for p in dev.kernels_dir().iterdir() if p.suffix in (".cl", ".h")):
         h.update(name.encode() + (dev.kernels_dir() / name).read_bytes())
@@ -240,7 +239,7 @@ def self_test(ctx: dev.Context) -> SelfTest:
         done = _results.get(key)
         if done is not None:
             return done
-        path = _cache_file(ctx)
+        path = _cache_file(ctx.device)
         result = None
         try:
             kept = json.loads(path.read_text())

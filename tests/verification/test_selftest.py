@@ -29,7 +29,7 @@ def test_default_device_passes_and_the_answer_is_kept():
     result = selftest.self_test(ctx)
     assert result.passed, result.failure
     assert selftest.results()[selftest.device_key(ctx.device)] is result
-    kept = json.loads(selftest._cache_file(ctx).read_text())
+    kept = json.loads(selftest._cache_file(ctx.device).read_text())
     assert kept["passed"] is True and kept["device"] == result.device
 
 
