@@ -388,6 +388,17 @@ inline int accept_hit(__global const float *vertices, int i0, int i1, int i2, co
     return 1;
 }
 
+/* The closest-hit walks' tie rule (traverse.cl, packet_traverse.cl): a hit
+ * at exactly the closest t so far, best, may still win (by the lower triangle
+ * index), so the triangle test is asked for t < tie_bound(best), the next
+ * float32 above best, which is t <= best for the float32 t it computes. t is
+ * never negative (t >= tmin >= 0), so the next float is one ulp up; from +-0
+ * the least positive float. */
+inline float tie_bound(float best) {
+    if (best == 0.0f) return as_float(1u);
+    return best < INFINITY ? as_float(as_uint(best) + 1u) : INFINITY;
+}
+
 /* accept_hit for the tests that do not keep the float translation at hand. */
 inline int accept_hit_loading(__global const float *vertices, int i0, int i1, int i2,
                               const Ray *ray, float best, float *t, float own) {

@@ -26,11 +26,14 @@
  * children hit unsorted instead, leaves first, each in their record's order:
  * any triangle ends that walk.
  *
- * The answers do not depend on the tree (up to which of two triangles hit at
- * exactly the same t is reported): a triangle's hit counts only where the ray
- * enters the triangle's own box by the same slab test, its t raised to that
- * box's entry (accept_hit), so the box of every node holding the closest hit's
- * triangle passes the slab test whatever else it holds.
+ * The answers do not depend on the tree nor on the order the nodes are
+ * visited in: a triangle's hit counts only where the ray enters the
+ * triangle's own box by the same slab test, its t raised to that box's entry
+ * (accept_hit), so the box of every node holding the closest hit's triangle
+ * passes the slab test whatever else it holds; and of triangles hit at
+ * exactly the same t the one of the lowest index (in the caller's numbering)
+ * wins (tie_bound), which is what the numpy twins report. Any hit reports the
+ * first triangle it finds.
  *
  * Compile-time variants (-D), all optional:
  *   ANY_HIT=1        stop at the first hit in [tmin, tmax] (occlusion)
@@ -263,13 +266,25 @@ __kernel void traverse(__global const float4 *nodes, __global const float *recor
                 const float own = EXACT_LEAVES && y == -1 ? x_entry : -1.0f;
                 for (int s = x; s < x - y; ++s) {
                     ++tested;
+#if ANY_HIT
                     if (hit_triangle(vertices, 3 * (int)slot_faces[3 * s], 3 * (int)slot_faces[3 * s + 1],
                                      3 * (int)slot_faces[3 * s + 2], &ray, own, &best, &bu, &bv)) {
                         best_slot = s;
-#if ANY_HIT
                         break;
-#endif
                     }
+#else
+                    /* A hit at exactly the closest t so far wins where its
+                     * triangle's index is lower (tie_bound) */
+                    float t = tie_bound(best), u, v;
+                    if (hit_triangle(vertices, 3 * (int)slot_faces[3 * s], 3 * (int)slot_faces[3 * s + 1],
+                                     3 * (int)slot_faces[3 * s + 2], &ray, own, &t, &u, &v) &&
+                        (t < best || prim_order[s] < prim_order[best_slot])) {
+                        best = t;
+                        bu = u;
+                        bv = v;
+                        best_slot = s;
+                    }
+#endif
                 }
 #if ANY_HIT
                 if (best_slot >= 0) break;
