@@ -60,6 +60,7 @@ from .rays import (DEVICE_KERNEL_FILE, DeviceRays, InvalidRays, Rays, check_inva
                    device_array_rays, device_invalid, host_array, is_device_array,
                    mark_invalid, read_device_rays, upload_rays)
 from .exact import collinear
+from .packets import packets_apply, trace_packets
 from .ray_order import ray_order, worth_ordering
 from ..tree import Mesh, Tree
 from .target import QueryTarget
@@ -433,7 +434,7 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
                   flags: cl.Buffer | None = None, counter_buf: cl.Buffer | None = None,
                   wait_for: list[cl.Event] | None = None, order: cl.Buffer | None = None,
                   defines: dict[str, int | str] | None = None,
-                  node_order: str = "ordered") -> DeviceHits:
+                  node_order: str = "ordered", packets: bool | None = None) -> DeviceHits:
     """Trace rays already on the device; nothing is read back.
 
     ``rays`` (see :func:`upload_rays`) must have passed :func:`check_rays`.
@@ -443,7 +444,9 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
     permutation, see :mod:`lbvh.ray_order`) sets the order the rays are traced
     in; the answers stay in the rays' own slots; ``node_order`` the order nodes are
     visited in (:data:`NODE_ORDERS`). ``defines`` adds or overrides
-    -D defines of kernels/traverse.cl (tests, experiments).
+    -D defines of kernels/traverse.cl (tests, experiments). ``packets``: trace by
+    packets of 8 rays (:mod:`lbvh.queries.packets`: the same answers bit for bit),
+    ``None`` where :func:`lbvh.queries.packets.packets_apply` says so.
     """
     ctx, tree = target.ctx, target.tree
     if stack_size is None:
@@ -456,19 +459,26 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
         flags = ctx.memory.alloc(4 * count)
     if counters and counter_buf is None:
         counter_buf = ctx.memory.alloc(8 * count)
+    all_defines = {**kernel_defines(ctx, any_hit, triangle_test, counters, stack_size, node_order),
+                   "WIDE": int(wide.packed), "WIDTH": wide.width,
+                   "RAY_ORDER": int(order is not None),
+                   **({"EXACT_LEAVES": 0} if tree.clipped_leaves else {}), **(defines or {})}
+    can = packets_apply(ctx, bool(all_defines["WIDE"]), int(all_defines["WIDTH"]), counters,
+                        "global" if all_defines.get("ORDER_GLOBAL") else node_order)
+    if packets and not can:
+        raise ValueError("packets=True: packets run on a CPU device through 8-wide records, "
+                         "without counters, in the default node order")
+    if packets or (packets is None and can and order is not None):
+        ev = trace_packets(target, rays, any_hit=any_hit, defines=all_defines, hits=hits,
+                           flags=flags, order=order, wait_for=wait_for)
+        return DeviceHits(count, hits, flags, None, ev)
     launch = _launch(ctx, count)
     ev = dev.run(ctx, KERNEL_FILE, "traverse", launch, tree.nodes, wide.buffer, tree.prim_order,
                  target.mesh.vertices_buf, target.slot_faces(), tree.root, wide.root_x,
                  wide.root_y, tree.num_nodes, rays.origins, rays.directions, rays.tmin, rays.tmax,
                  rays.interval_stride, order if order is not None else flags, hits, flags,
                  counter_buf if counters else flags, count, launch.per_item,
-                 defines={**kernel_defines(ctx, any_hit, triangle_test, counters, stack_size,
-                                          node_order),
-                          "WIDE": int(wide.packed), "WIDTH": wide.width,
-                          "RAY_ORDER": int(order is not None),
-                          **({"EXACT_LEAVES": 0} if tree.clipped_leaves else {}),
-                          **(defines or {})},
-                 wait_for=wait_for)
+                 defines=all_defines, wait_for=wait_for)
     return DeviceHits(count, hits, flags, counter_buf if counters else None, ev)
 
 
@@ -753,7 +763,8 @@ _INTERSECT_ARGS = """
 _INTERSECT_RETURNS = """
     Returns:
         :class:`Hits` (:class:`DeviceHitArrays` for pyopencl rays). Among triangles hit
-        at exactly the same ``t`` the one found first wins.
+        at exactly the same ``t`` the one of the lowest index wins: the answer is the
+        same whatever the tree, the builder or the walk (by packets or ray by ray).
 """
 _OCCLUDED_SUMMARY = ("Whether each ray hits anything in ``[tmin, tmax]`` (any-hit traversal, "
                      "stops at the first).")

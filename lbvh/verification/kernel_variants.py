@@ -39,7 +39,7 @@ from ..queries import (all_hits, closest, instance_closest, instance_hits, insta
 from ..builders import refit
 from ..builders import restructure
 from ..device import sort
-from ..queries import traverse
+from ..queries import packets, traverse
 from ..queries import wide
 
 Defines = dict[str, int | str]
@@ -133,6 +133,16 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
                     add(traverse.KERNEL_FILE, {**base, **extra, **clipped})
                     if not any_hit:   # intersect(order="global"): closest hits only
                         add(traverse.KERNEL_FILE, {**base, **extra, **clipped, "ORDER_GLOBAL": 1})
+    # packet_traverse.cl: packets of 8 rays on a CPU (closest and any hit, no counters, the
+    # default node order) through 8-wide records, in the rays' order or not
+    if is_cpu:
+        for ctx in ctxs:
+            for any_hit, test, stack in itertools.product(
+                    (False, True), traverse.TRIANGLE_TESTS, traverse.STACK_BUCKETS):
+                base = traverse.kernel_defines(ctx, any_hit, test, False, stack)
+                for ordered, clipped in itertools.product((False, True), ({}, {"EXACT_LEAVES": 0})):
+                    add(packets.KERNEL_FILE, packets.packet_defines({**base, **clipped}, any_hit,
+                                                                    ordered))
     # device_rays.cl: the checks and marks (no defines), the result's arrays, and
     # the conversion of each element type lbvh reads from pyopencl arrays
     add(rays.DEVICE_KERNEL_FILE, {})
