@@ -47,7 +47,8 @@
  *                    (kernels/ray_triangle.h)
  *   WIDE=0           read the tree's own nodes instead of the wide records
  *   WIDTH=4 or 8     children per wide record (kernels/wide.cl), default 8
- *   RAY_ORDER=1      trace the rays in the order order[] gives (ray_order.cl)
+ *   RAY_ORDER=1      trace the rays in the order order[] gives (ray_order.cl),
+ *                    skipping entries of -1 (packet_traverse.cl's deferred)
  *   EXACT_LEAVES=0   leaves' boxes may be parts of their triangles' (spatial
  *                    splits, lbvh/builders/sbvh.py): a leaf of one triangle is
  *                    then not taken for the triangle's own box (accept_hit)
@@ -235,7 +236,10 @@ __kernel void traverse(__global const float4 *nodes, __global const float *recor
 
     for (int k = first; k < last; ++k) {
 #if RAY_ORDER
-        const int i = order[k];  /* rays in the order of ray_order.cl's keys */
+        /* rays in the order of ray_order.cl's keys; or the rays that the packets
+         * left (packet_traverse.cl's deferred), -1 for those they traced */
+        const int i = order[k];
+        if (i < 0) continue;
 #else
         const int i = k;
 #endif

@@ -31,6 +31,9 @@ PACKET = 8
 #: (lbvh.queries.traverse).
 RAYS_PER_ITEM = 64
 
+#: Calls of fewer rays go ray by ray: a second launch costs more than packets save.
+PACKETS_FROM = 4096
+
 
 def packets_apply(ctx: dev.Context, wide_packed: bool, width: int, counters: bool,
                   node_order: str) -> bool:
@@ -57,11 +60,15 @@ def packet_defines(defines: dict, any_hit: bool, ordered: bool) -> dict[str, int
 
 def trace_packets(target: QueryTarget, rays: DeviceRays, *, any_hit: bool, defines: dict,
                   hits: cl.Buffer, flags: cl.Buffer, order: cl.Buffer | None,
-                  wait_for: list[cl.Event] | None = None) -> cl.Event:
+                  deferred: cl.Buffer, wait_for: list[cl.Event] | None = None) -> cl.Event:
     """Trace checked rays on the device by packets into ``hits`` (four planes of
     ``count`` float32: t, u, v, primitive bits) and ``flags`` (int32), as
     :func:`lbvh.queries.traverse.trace_buffers` does; ``defines`` are the single-ray
-    kernel's (its triangle test, stack and slab pad). Returns the kernel's event."""
+    kernel's (its triangle test, stack and slab pad). The packets whose rays are not
+    coherent (kernels/packet_traverse.cl ``packet_coherent``) are not traced: their
+    rays' indices are written to ``deferred`` (``int32 (count,)``, -1 for the rays
+    traced here) for the single-ray walk to trace in that order. Returns the kernel's
+    event."""
     ctx, tree = target.ctx, target.tree
     wide = target.wide_records()
     count = int(rays.count)
@@ -73,8 +80,9 @@ def trace_packets(target: QueryTarget, rays: DeviceRays, *, any_hit: bool, defin
                    tree.prim_order, target.mesh.vertices_buf, target.slot_faces(), tree.root,
                    wide.root_x, wide.root_y, tree.num_nodes, rays.origins, rays.directions,
                    rays.tmin, rays.tmax, rays.interval_stride,
-                   order if order is not None else flags, hits, flags, count, launch.per_item,
+                   order if order is not None else flags, hits, flags, deferred, count,
+                   launch.per_item,
                    defines=own, wait_for=wait_for)
 
 
-__all__ = ["PACKET", "RAYS_PER_ITEM", "packet_defines", "packets_apply", "trace_packets"]
+__all__ = ["PACKET", "PACKETS_FROM", "RAYS_PER_ITEM", "packet_defines", "packets_apply", "trace_packets"]

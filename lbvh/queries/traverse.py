@@ -60,7 +60,7 @@ from .rays import (DEVICE_KERNEL_FILE, DeviceRays, InvalidRays, Rays, check_inva
                    device_array_rays, device_invalid, host_array, is_device_array,
                    mark_invalid, read_device_rays, upload_rays)
 from .exact import collinear
-from .packets import packets_apply, trace_packets
+from .packets import PACKETS_FROM, packets_apply, trace_packets
 from .ray_order import ray_order, worth_ordering
 from ..tree import Mesh, Tree
 from .target import QueryTarget
@@ -468,10 +468,15 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
     if packets and not can:
         raise ValueError("packets=True: packets run on a CPU device through 8-wide records, "
                          "without counters, in the default node order")
-    if packets or (packets is None and can and order is not None):
+    deferred = None
+    if packets or (packets is None and can and count >= PACKETS_FROM):
+        # packets where they are coherent; the rays of the others, listed in
+        # `deferred`, go through the single-ray walk next (lbvh.queries.packets)
+        deferred = ctx.memory.alloc(4 * count)
         ev = trace_packets(target, rays, any_hit=any_hit, defines=all_defines, hits=hits,
-                           flags=flags, order=order, wait_for=wait_for)
-        return DeviceHits(count, hits, flags, None, ev)
+                           flags=flags, order=order, deferred=deferred, wait_for=wait_for)
+        order, wait_for = deferred, [ev]
+        all_defines["RAY_ORDER"] = 1
     launch = _launch(ctx, count)
     ev = dev.run(ctx, KERNEL_FILE, "traverse", launch, tree.nodes, wide.buffer, tree.prim_order,
                  target.mesh.vertices_buf, target.slot_faces(), tree.root, wide.root_x,
@@ -479,6 +484,8 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
                  rays.interval_stride, order if order is not None else flags, hits, flags,
                  counter_buf if counters else flags, count, launch.per_item,
                  defines=all_defines, wait_for=wait_for)
+    if deferred is not None:
+        ctx.memory.free(deferred)   # released once the walk that reads it is done
     return DeviceHits(count, hits, flags, counter_buf if counters else None, ev)
 
 

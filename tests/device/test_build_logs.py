@@ -41,7 +41,8 @@ import lbvh
 from lbvh.queries.all_hits import segment_work
 from lbvh.api import collapse_leaves
 from lbvh.device import sort
-from lbvh.queries import closest, instance_closest, ray_order
+from lbvh.queries import closest, instance_closest, packets, ray_order
+from lbvh.queries.packets import PACKETS_FROM
 from conftest import REPO, pocl_cpu_device, random_soup
 from lbvh import device as dev
 from lbvh.verification import kernel_variants as kv
@@ -97,12 +98,17 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
              lbvh.build(v, f, device=ctx, builder="sah"),
              lbvh.build(v, f, device=ctx, builder="sbvh")]
     assert trees[3].build_report.key_bits == 63 and trees[2].build_report.key_bits == 30
+    many = -(-PACKETS_FROM // len(o))
     for bvh in trees:
         clipped = bvh.tree.clipped_leaves   # no box queries, winding or refit on an SBVH
         for test in ("watertight", "moller"):
             for counters in (False, True):
                 bvh.intersect(o, d, triangle_test=test, counters=counters)
                 bvh.occluded(o, d, triangle_test=test, counters=counters)
+            # calls large enough for packets of rays (on a CPU)
+            many_o, many_d = np.repeat(o, many, axis=0), np.repeat(d, many, axis=0)
+            bvh.intersect(many_o, many_d, triangle_test=test)
+            bvh.occluded(many_o, many_d, triangle_test=test)
         bvh.closest_points(o)
         if not clipped:
             bvh.overlapping(o, o + np.float32(0.1))
@@ -194,7 +200,8 @@ def test_variant_list_is_complete(monkeypatch, kind):
                          f"is_cpu={ctx.is_cpu}):\n" + "\n".join(map(str, missing)))
     # The calls reach every kernel file (else the recording proves little)
     files = {p.name for p in dev.kernels_dir().glob("*.cl")}
-    assert {f for f, _ in seen} == files
+    cpu_only = set() if ctx.is_cpu else {packets.KERNEL_FILE}   # packets of rays: CPUs only
+    assert {f for f, _ in seen} == files - cpu_only
     # and the list names no file that does not exist, for either kind
     assert {f for f, _ in kv.kernel_variants(True) + kv.kernel_variants(False)} == files
     # The context's own list is a subset of the kind's

@@ -64,11 +64,60 @@ def assert_same(bvh, o, d, tmin=0.0, tmax=np.inf, *, ordered=True, stack_size=No
     return single
 
 
+def grid_rays(v, side=48, offset=(0.3, 2.0, 0.7)):
+    """Coherent rays: from one point outside the box through a side x side grid on
+    the box's far half, row by row (a camera's, which the packets take together)."""
+    v = np.asarray(v, np.float64)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    centre, size = (lo + hi) / 2, float((hi - lo).max()) or 1.0
+    eye = centre + size * np.asarray(offset)
+    s = (np.arange(side) + 0.5) / side - 0.5
+    gx, gy = np.meshgrid(s, s)
+    target = centre + size * np.column_stack([gx.ravel(), np.zeros(side * side), gy.ravel()])
+    d = target - eye
+    return np.tile(eye, (len(d), 1)).astype(np.float32), d.astype(np.float32)
+
+
+def deferred_share(bvh, o, d):
+    """The share of rays the packets leave to the single-ray walk (not coherent)."""
+    from lbvh.queries.packets import trace_packets
+    ctx = bvh.ctx
+    rays = upload_rays(ctx, check_rays(o, d))
+    n = rays.count
+    hits, flags, deferred = (ctx.memory.alloc(16 * n), ctx.memory.alloc(4 * n),
+                             ctx.memory.alloc(4 * n))
+    defines = tr.kernel_defines(ctx, False, "watertight", False, tr.stack_size_for(bvh))
+    ev = trace_packets(bvh, rays, any_hit=False, defines=defines, hits=hits, flags=flags,
+                       order=None, deferred=deferred)
+    out = np.empty(n, np.int32)
+    cl.enqueue_copy(ctx.queue, out, deferred, wait_for=[ev], is_blocking=True)
+    ctx.memory.free(hits, flags, deferred)
+    rays.release()
+    assert set(np.unique(out[out >= 0])) <= set(range(n))
+    return float(np.mean(out >= 0))
+
+
 @pytest.mark.parametrize("kind", TREES)
 @pytest.mark.parametrize("name", sorted(SCENES))
 def test_packets_equal_the_single_ray_walk(name, kind):
+    """Coherent rays (a grid seen from one point: packets) and the scattered rays
+    of test_traverse (mostly left to the single-ray walk)."""
+    v, _ = SCENES[name]()
+    o, d = grid_rays(v)
+    assert_same(tree(name, kind), o, d, context=f"{name}/{kind}/grid")
     o, d = ray_set(name)
     assert_same(tree(name, kind), o, d, context=f"{name}/{kind}")
+
+
+def test_coherent_packets_go_together_and_scattered_rays_alone():
+    """The grid's packets are traced as packets; rays in no order are left to the
+    single-ray walk (only speed depends on it)."""
+    v, f = SCENES["teapot"]()
+    bvh = tree("teapot", "lbvh30")
+    o, d = grid_rays(v)
+    assert deferred_share(bvh, o, d) < 0.05
+    perm = np.random.default_rng(1).permutation(len(o))
+    assert deferred_share(bvh, o[perm], d[perm]) > 0.9
 
 
 @pytest.mark.parametrize("builder", sorted(runner.BUILDERS))
@@ -96,6 +145,10 @@ def test_packets_equal_the_single_ray_walk_on_the_hard_cases(name):
             assert (flags & tr.FLAG_OVERFLOW).any(), name
         return
     assert_same(bvh, case.origins, case.directions, case.tmin, case.tmax, context=name)
+    with np.errstate(over="ignore", invalid="ignore"):
+        o, d = grid_rays(case.vertices)   # coherent rays: traced as packets
+    if np.isfinite(o).all() and np.isfinite(d).all() and (d != 0).any(axis=1).all():
+        assert_same(bvh, o, d, context=f"{name}/grid")
     # in the rays' own order too (packets of neighbours in the case's listing)
     assert_same(bvh, case.origins, case.directions, case.tmin, case.tmax, ordered=False,
                 context=name)
@@ -191,3 +244,6 @@ def test_packets_equal_the_single_ray_walk_on_fuzzed_meshes(data):
     for builder in ("lbvh30", "sah"):
         bvh = runner.build_with(builder, v, f)
         assert_same(bvh, o, d, context=builder)
+        # the same rays in packets of 8 from one origin (forced together where they
+        # stay within the box: tiny meshes make most such packets coherent)
+        assert_same(bvh, np.repeat(o[:1], len(d), axis=0), d, ordered=False, context=builder)
