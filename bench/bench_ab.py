@@ -9,7 +9,9 @@ process per checkout (in alternating order from round to round), each timing
 ``bvh.intersect`` (closest hit) and ``bvh.occluded`` (any hit) through the public
 API on the default ``lbvh.build`` tree, on the bench camera's primary rays
 (``lbvh/data/cameras.json``), the median of ``--repeats`` calls after one untimed
-call. ``winding`` times ``bvh.winding_numbers`` at ``--points`` points drawn
+call. ``ao`` and ``ao-any`` time the same calls on bench_traverse's ambient-occlusion
+rays (one per hit pixel, from the checkout's own primary hits): incoherent rays.
+``winding`` times ``bvh.winding_numbers`` at ``--points`` points drawn
 uniformly from the scene's box grown by a tenth each side (seed 0). ``one`` and
 ``thousand`` time ``bvh.intersect`` of 1 and 1,000 of the camera's rays picked
 evenly over the image (the price of a call: the median of ``100 * --repeats``
@@ -54,22 +56,36 @@ pts = (lo - 0.1 * (hi - lo) + 1.2 * (hi - lo) * np.random.default_rng(0).random(
 few = {k: np.linspace(0, len(o) - 1, k).astype(np.int64) for k in (1, 1000)}
 o1, d1 = o[few[1]], d[few[1]]
 ok, dk = o[few[1000]], d[few[1000]]
+ao = []
+
+
+def ao_rays():
+    if not ao:   # the AO rays of bench_traverse (one per hit pixel), made once
+        import bench_traverse
+        rs = bench_traverse.ao_rays(bvh, bvh.intersect(o, d), d, 1)
+        ao.extend([rs.origins, rs.directions, rs.tmax])
+    return ao
+
+
 queries = {"closest": lambda: bvh.intersect(o, d), "any": lambda: bvh.occluded(o, d),
+           "ao": lambda: bvh.intersect(ao_rays()[0], ao_rays()[1], tmax=ao_rays()[2]),
+           "ao-any": lambda: bvh.occluded(ao_rays()[0], ao_rays()[1], tmax=ao_rays()[2]),
            "winding": lambda: bvh.winding_numbers(pts),
            "one": lambda: bvh.intersect(o1, d1), "thousand": lambda: bvh.intersect(ok, dk)}
 out = {}
 for name in sys.argv[7].split(","):
     fn = queries[name]
-    for _ in range(1 if name in ("closest", "any", "winding") else 20):
+    whole = name in ("closest", "any", "winding", "ao", "ao-any")
+    for _ in range(1 if whole else 20):
         fn()
     times = []
-    calls = int(sys.argv[5]) * (1 if name in ("closest", "any", "winding") else 100)
+    calls = int(sys.argv[5]) * (1 if whole else 100)
     for _ in range(calls):
         t0 = time.perf_counter(); r = fn(); times.append(time.perf_counter() - t0)
     out[name] = sorted(times)[len(times) // 2]
-    res = r if name in ("any", "winding") else r.t
+    res = r if name in ("any", "ao-any", "winding") else r.t
     np.save(sys.argv[6] + f"-{name}.npy", res)
-    if name not in ("any", "winding"):
+    if name not in ("any", "ao-any", "winding"):
         np.save(sys.argv[6] + f"-{name}-prim.npy", r.prim)
 print(json.dumps(out))
 """
@@ -92,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rounds", type=int, default=4)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--queries", nargs="+", default=["closest", "any"],
-                   choices=["closest", "any", "winding", "one", "thousand"])
+                   choices=["closest", "any", "ao", "ao-any", "winding", "one", "thousand"])
     p.add_argument("--points", type=int, default=1 << 18)
     p.add_argument("--out", type=Path, default=HERE / "out" / "ab")
     args = p.parse_args(argv)
@@ -114,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
                     times[who][q].append(got[q])
         for q in args.queries:
             a, b = np.load(tmp / f"this-{q}.npy"), np.load(tmp / f"other-{q}.npy")
-            if q == "any":
+            if q in ("any", "ao-any"):
                 same = bits = float(np.mean(a == b))
             elif q == "winding":
                 same = float(np.mean((a > 0.5) == (b > 0.5)))
@@ -127,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
             report.append({"scene": scene, "query": q, "this_s": ta, "other_s": tb,
                            "ratio": ta / tb, "same_answers": same, "same_bits": bits,
                            "rounds": {k: times[k][q] for k in times}})
-            digits = 1 if q in ("closest", "any", "winding") else 3
+            digits = 1 if q in ("closest", "any", "ao", "ao-any", "winding") else 3
             lines.append(f"| {scene} | {q} | {1e3 * ta:.{digits}f} | {1e3 * tb:.{digits}f} | "
                          f"{ta / tb:.3f} | "
                          f"{same:.5f} | {bits:.5f} |")
