@@ -108,43 +108,58 @@ inline float packet_nearest(float8 e, uint bits) {
     return b.x < b.y ? b.x : b.y;
 }
 
-/* Whether the live rays of a packet stay together through the tree: how far
- * apart they can get within the box, the spread of their origins plus the
- * spread of their directions (each scaled to a largest component of 1)
- * times the length of ray that can meet the box (tmax, or the distance to
- * the box's far side), at most COHERENT_SPREAD times the root box's largest
- * extent (all in the largest component). A camera's or a scanner's
- * neighbouring rays pass, and so do short rays leaving nearby points (1.14x
- * and 0.99x on the bunny's ambient-occlusion rays, closest and any hit,
- * where leaving them to the single-ray walk gave 0.91x and 0.87x); rays in
- * no order do not: their rays are left to the single-ray walk
- * (`deferred`). Only the speed depends on it, never an answer. */
+/* Whether the rays of a packet (indices id[0..n)) stay together through the
+ * tree, read from the rays' arrays before anything else is made of them:
+ * their directions, each scaled to a largest component of 1, differ by at
+ * most COHERENT_DIRECTION in every component from the first ray's, and how
+ * far apart they can get within the box (the spread of their origins plus
+ * that of their directions times the length of ray that can meet the box:
+ * tmax, or the distance to the box's far side) is at most COHERENT_SPREAD
+ * times the root box's largest extent (all in the largest component). A
+ * camera's or a scanner's neighbouring rays pass; rays bounced off a surface
+ * in random directions (ambient occlusion: 1.05-1.31x the single-ray walk's
+ * time as packets) and rays in no order (shuffled camera rays: 0.54-0.62x
+ * its speed) do not: their rays are left to the single-ray walk
+ * (`deferred`). The bounds, 2^-4 each, are the measured ones: at 1/4 and 1/2
+ * the Morton-sorted AO rays of terrain-1m passed and took 1.12x and 1.19x the
+ * single-ray walk's time (closest, any hit); at 2^-4 0.97x and 0.98x its
+ * speed, and camera rays kept 1.08-1.36x (bench/README.md). A NaN fails every
+ * comparison: such a packet is deferred too. Only the speed depends on this
+ * test, never an answer. */
+#ifndef COHERENT_DIRECTION
+#define COHERENT_DIRECTION 0x1p-4f
+#endif
 #ifndef COHERENT_SPREAD
-#define COHERENT_SPREAD 0.5f
+#define COHERENT_SPREAD 0x1p-4f
 #endif
 inline float unit_max(float x, float y, float z) {
     return max_keep(max_keep(abs_bits(x), abs_bits(y)), abs_bits(z));
 }
-inline int packet_coherent(const Ray *ray, __global const float *root_box, uint live) {
-    if (live == 0u || (live & (live - 1u)) == 0u) return 1;
-    const Ray *f = ray + lowest_lane(live);
+inline int packet_coherent(__global const float *origins, __global const float *directions,
+                           __global const float *tmaxs, int interval_stride, const int *id,
+                           int n, __global const float *root_box) {
+    if (n < 2) return 1;
     const float extent = unit_max(root_box[4] - root_box[0], root_box[5] - root_box[1],
                                   root_box[6] - root_box[2]);
-    const float far = unit_max(f->ox - 0.5f * (root_box[0] + root_box[4]),
-                               f->oy - 0.5f * (root_box[1] + root_box[5]),
-                               f->oz - 0.5f * (root_box[2] + root_box[6])) + extent;
-    const float m0 = unit_max(f->dx, f->dy, f->dz);
-    const float ax = f->dx / m0, ay = f->dy / m0, az = f->dz / m0;
-    float directions = 0.0f, origins = 0.0f, reach = f->tmax * m0;
-    for (uint m = live & (live - 1u); m != 0u; m &= m - 1u) {
-        const Ray *q = ray + lowest_lane(m);
-        const float mq = unit_max(q->dx, q->dy, q->dz);
-        directions = max_keep(unit_max(q->dx / mq - ax, q->dy / mq - ay, q->dz / mq - az),
-                              directions);
-        origins = max_keep(unit_max(q->ox - f->ox, q->oy - f->oy, q->oz - f->oz), origins);
-        reach = max_keep(q->tmax * mq, reach);
+    __global const float *o0 = origins + 3 * id[0], *d0 = directions + 3 * id[0];
+    const float far = unit_max(o0[0] - 0.5f * (root_box[0] + root_box[4]),
+                               o0[1] - 0.5f * (root_box[1] + root_box[5]),
+                               o0[2] - 0.5f * (root_box[2] + root_box[6])) + extent;
+    const float m0 = unit_max(d0[0], d0[1], d0[2]);
+    const float ax = d0[0] / m0, ay = d0[1] / m0, az = d0[2] / m0;
+    float directions_apart = 0.0f, origins_apart = 0.0f,
+          reach = tmaxs[id[0] * interval_stride] * m0;
+    for (int r = 1; r < n; ++r) {
+        __global const float *o = origins + 3 * id[r], *d = directions + 3 * id[r];
+        const float m = unit_max(d[0], d[1], d[2]);
+        const float apart = unit_max(d[0] / m - ax, d[1] / m - ay, d[2] / m - az);
+        const float moved = unit_max(o[0] - o0[0], o[1] - o0[1], o[2] - o0[2]);
+        if (!(apart <= COHERENT_DIRECTION && moved <= extent)) return 0;
+        directions_apart = max_keep(apart, directions_apart);
+        origins_apart = max_keep(moved, origins_apart);
+        reach = max_keep(tmaxs[id[r] * interval_stride] * m, reach);
     }
-    return origins + directions * min_keep(reach, far) <= COHERENT_SPREAD * extent;
+    return origins_apart + directions_apart * min_keep(reach, far) <= COHERENT_SPREAD * extent;
 }
 
 __kernel void traverse_packets(__global const float4 *nodes, __global const float *records,
@@ -173,16 +188,28 @@ __kernel void traverse_packets(__global const float4 *nodes, __global const floa
         packet_floats ox, oy, oz, jx, jy, jz, ix, iy, iz, t_min, t_max;
         int8 negx, negy, negz;
         uint live = 0u;   /* the rays of the packet being traced */
+        const int n = last - k0 < PACKET ? last - k0 : PACKET;
         for (int r = 0; r < PACKET; ++r) {
             /* a short last packet repeats its first ray in the lanes past the
              * end, which are not traced */
-            const int k = k0 + r < last ? k0 + r : k0;
+            const int k = r < n ? k0 + r : k0;
 #if RAY_ORDER
-            const int i = order[k];
+            id[r] = order[k];
 #else
-            const int i = k;
+            id[r] = k;
 #endif
-            id[r] = i;
+        }
+        /* A packet whose rays part at once would test every record's boxes for 8
+         * rays on behalf of one or two: its rays go to the single-ray walk, which
+         * traces the rays listed in deferred (-1: traced here) after this kernel
+         * (lbvh/queries/packets.py). */
+        __global const float *root_box = (__global const float *)(nodes + 2 * root);
+        const int together =
+            packet_coherent(origins, directions, tmaxs, interval_stride, id, n, root_box);
+        for (int r = 0; r < n; ++r) deferred[k0 + r] = together ? -1 : id[r];
+        if (!together) continue;
+        for (int r = 0; r < PACKET; ++r) {
+            const int i = id[r];
             make_ray(&ray[r], origins + 3 * i, directions + 3 * i, tmins[i * interval_stride],
                      tmaxs[i * interval_stride]);
             best[r] = INFINITY;
@@ -192,7 +219,7 @@ __kernel void traverse_packets(__global const float4 *nodes, __global const floa
             flag[r] = 0;
             if (ray_has_nan(&ray[r]))
                 flag[r] |= FLAG_NAN_RAY;   /* reported, not traced */
-            else if (k0 + r < last)
+            else if (r < n)
                 live |= 1u << r;
             ox.s[r] = ray[r].ox; oy.s[r] = ray[r].oy; oz.s[r] = ray[r].oz;
             jx.s[r] = ray[r].jx; jy.s[r] = ray[r].jy; jz.s[r] = ray[r].jz;
@@ -220,15 +247,6 @@ __kernel void traverse_packets(__global const float4 *nodes, __global const floa
                                   (sz == 0u || sz == 0xffu)
                               ? (int)(sx & 1u) | (int)(sy & 1u) << 1 | (int)(sz & 1u) << 2
                               : -1;
-        /* The root's box, from its node. A packet whose rays part at once would
-         * test every record's boxes for 8 rays on behalf of one or two (0.54-0.62x
-         * the single-ray walk on shuffled camera rays): its rays go to the
-         * single-ray walk, which traces the rays listed in deferred (-1: traced
-         * here) after this kernel (lbvh/queries/packets.py). */
-        __global const float *root_box = (__global const float *)(nodes + 2 * root);
-        const int together = packet_coherent(ray, root_box, live);
-        for (int r = 0; r < PACKET && k0 + r < last; ++r) deferred[k0 + r] = together ? -1 : id[r];
-        if (!together) continue;
         packet_floats best_v;
         best_v.v = (float8)(INFINITY);
 
@@ -345,7 +363,7 @@ __kernel void traverse_packets(__global const float4 *nodes, __global const floa
                 break;
             }
         }
-        for (int r = 0; r < PACKET && k0 + r < last; ++r) {
+        for (int r = 0; r < n; ++r) {
             const int i = id[r];
             float t = best[r];
             if (ray[r].texp != 0) t = ldexp(t, -ray[r].texp);

@@ -64,14 +64,15 @@ def assert_same(bvh, o, d, tmin=0.0, tmax=np.inf, *, ordered=True, stack_size=No
     return single
 
 
-def grid_rays(v, side=48, offset=(0.3, 2.0, 0.7)):
-    """Coherent rays: from one point outside the box through a side x side grid on
-    the box's far half, row by row (a camera's, which the packets take together)."""
+def grid_rays(v, side=48, offset=(0.3, 2.0, 0.7), span=0.125):
+    """Coherent rays: from one point outside the box through a side x side grid of
+    ``span`` times the box's size about its centre, row by row (a camera's, which the
+    packets take together)."""
     v = np.asarray(v, np.float64)
     lo, hi = v.min(axis=0), v.max(axis=0)
     centre, size = (lo + hi) / 2, float((hi - lo).max()) or 1.0
     eye = centre + size * np.asarray(offset)
-    s = (np.arange(side) + 0.5) / side - 0.5
+    s = span * ((np.arange(side) + 0.5) / side - 0.5)
     gx, gy = np.meshgrid(s, s)
     target = centre + size * np.column_stack([gx.ravel(), np.zeros(side * side), gy.ravel()])
     d = target - eye
