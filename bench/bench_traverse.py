@@ -850,6 +850,67 @@ def targets(rows: list[dict], scene_names: list[str]) -> list[dict]:
     return out
 
 
+#: The rays' goal (the default tree through the API, the same rays and rounds): our
+#: throughput over each of :data:`GOAL_PEERS` at least this much per query ...
+RAYS_GOAL = {"closest": 1.3, "any": 1.3, "ao": 1.0}
+#: ... a call of 1,000 rays at least as fast as Open3D's, and one ray in at most this
+#: many seconds.
+RAYS_GOAL_THOUSAND = 1.0
+RAYS_GOAL_ONE_SECONDS = 20e-6
+
+
+def rays_goal(report: dict) -> list[dict]:
+    """The rays' goal per scene: the default tree's ratios per query against
+    :data:`GOAL_PEERS` (:data:`RAYS_GOAL`), the small calls' (1,000 rays over Open3D,
+    one ray's seconds); each with MET / NOT MET / NOT MEASURED."""
+    out = []
+    small = {sc["name"]: {e["rays"]: e for e in sc.get("small_batches", [])}
+             for sc in report["scenes"]}
+    for e in report["goal"]:
+        if e["role"] != "default":
+            continue
+        row = {"scene": e["scene"], "checks": []}
+        for q, need in RAYS_GOAL.items():
+            for p in GOAL_PEERS:
+                r = e["queries"].get(q, {}).get("vs", {}).get(p)
+                value = None if r is None else r["ratio"]
+                row["checks"].append({"what": f"{q} / {p}", "value": value, "needs": f">= {need:g}",
+                                      "met": None if value is None else value >= need})
+        calls = small.get(e["scene"], {})
+        thousand = calls.get(1000, {}).get("ours_over", {}).get(OPEN3D)
+        row["checks"].append({"what": f"1,000 rays / {OPEN3D}", "value": thousand,
+                              "needs": f">= {RAYS_GOAL_THOUSAND:g}",
+                              "met": None if thousand is None else thousand >= RAYS_GOAL_THOUSAND})
+        one = calls.get(1, {}).get("seconds", {}).get(OURS)
+        row["checks"].append({"what": "one ray (us)", "value": None if one is None else one * 1e6,
+                              "needs": f"<= {RAYS_GOAL_ONE_SECONDS * 1e6:g}",
+                              "met": None if one is None else one <= RAYS_GOAL_ONE_SECONDS})
+        out.append(row)
+    return out
+
+
+def rays_goal_markdown(rows: list[dict]) -> list[str]:
+    """The section of :func:`rays_goal`: one row per scene, a column per check."""
+    if not rows:
+        return []
+    names = [c["what"] for c in rows[0]["checks"]]
+    needs = [c["needs"] for c in rows[0]["checks"]]
+    met = sum(c["met"] is True for r in rows for c in r["checks"])
+    judged = sum(c["met"] is not None for r in rows for c in r["checks"])
+    lines = ["", "## Goal (rays ahead of Embree and Open3D: the default tree through the API, "
+             "same rays and rounds)", "",
+             f"**{met} of {judged} checks met.** Each cell: ours over the peer (above 1 ours is "
+             "faster), or one ray's time; `*` marks a check that is not met.", "",
+             "| scene | " + " | ".join(f"{n} ({w})" for n, w in zip(names, needs)) + " |",
+             "|---|" + "---:|" * len(names)]
+    for r in rows:
+        cells = [("-" if c["value"] is None else f"{c['value']:.2f}" if "us" not in c["what"]
+                  else f"{c['value']:.0f}") + ("*" if c["met"] is False else "")
+                 for c in r["checks"]]
+        lines.append(f"| {r['scene']} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def goal_status(ratios: dict[str, dict | None], at_least: float) -> tuple[str, list[str]]:
     """MET / NOT MET / NOT MEASURED for one tree and query against :data:`GOAL_PEERS`,
     and what falls short (``"0.69x embree-2t"``) or is missing."""
@@ -1091,6 +1152,7 @@ def markdown(report: dict) -> str:
                      + "".join(f" {n}." for n in sc["notes"]))
     for skipped in report["skipped"]:
         lines.append(f"- {skipped['scene']}: skipped ({skipped['reason']})")
+    lines += rays_goal_markdown(report.get("rays_goal", []))
     lines += goal_markdown(report["goal"], report["goal_verdict"])
     lines += gap_markdown(report.get("gap", []))
     lines += ["", "## Closest hit: ours against the peers (same run)", "",
@@ -1344,6 +1406,7 @@ def main(argv: list[str] | None = None) -> dict:
     }
     report["goal_verdict"] = goal_verdict(report["goal"])
     report["gap"] = gap(rows, report["goal"])
+    report["rays_goal"] = rays_goal(report)
     write_outputs(report, out, started)
     return report
 

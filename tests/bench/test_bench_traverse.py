@@ -315,7 +315,9 @@ def test_quick_markdown_has_the_tables_and_targets(quick):
     assert "## The price of watertightness" in text
     assert text.count(f"| {report['scenes'][0]['name']} | ") == (
         len(report["rows"]) + len(report["closest_ratios"]) + len(report["watertight_price"])
-        + len(report["goal"]) + len(report["scenes"][0]["small_batches"]) + len(report["gap"]))
+        + len(report["goal"]) + len(report["scenes"][0]["small_batches"]) + len(report["gap"])
+        + len(report["rays_goal"]))
+    assert "## Goal (rays ahead of Embree and Open3D" in text
     assert "## Small batches" in text
     verdict = [line for line in text.splitlines() if line.startswith("**Verdict, closest hit: ")]
     assert len(verdict) == 1 and report["goal_verdict"]["closest"]["status"] + "**" in verdict[0]
@@ -435,3 +437,25 @@ def test_ratio_to_pairs_the_rounds():
     assert r["rounds"] == pytest.approx([0.5, 0.25, 0.5])
     assert (r["round_min"], r["round_max"]) == (0.25, 0.5)
     assert bench.ratio_to(ours, None, "closest") is None and bench.ratio_to(ours, ours, "closest") is None
+
+
+def test_rays_goal_judges_each_check_from_the_report():
+    """The rays' goal: per query ours over each goal peer against RAYS_GOAL, the call of
+    1,000 rays over Open3D, one ray's time; a missing figure is not judged."""
+    vs = {bench.OPEN3D: {"ratio": 1.4}, "embree-2t": {"ratio": 1.2}}
+    entry = {"scene": "s", "role": "default",
+             "queries": {"closest": {"vs": vs}, "any": {"vs": vs},
+                         "ao": {"vs": {bench.OPEN3D: {"ratio": 1.0}, "embree-2t": None}}}}
+    small = [{"rays": 1, "seconds": {bench.OURS: 25e-6}, "ours_over": {}},
+             {"rays": 1000, "seconds": {}, "ours_over": {bench.OPEN3D: 1.1}}]
+    report = {"goal": [entry, {**entry, "role": "best"}],
+              "scenes": [{"name": "s", "small_batches": small}]}
+    rows = bench.rays_goal(report)
+    assert len(rows) == 1
+    met = {c["what"]: c["met"] for c in rows[0]["checks"]}
+    assert met == {f"closest / {bench.OPEN3D}": True, "closest / embree-2t": False,
+                   f"any / {bench.OPEN3D}": True, "any / embree-2t": False,
+                   f"ao / {bench.OPEN3D}": True, "ao / embree-2t": None,
+                   f"1,000 rays / {bench.OPEN3D}": True, "one ray (us)": False}
+    text = "\n".join(bench.rays_goal_markdown(rows))
+    assert "**4 of 7 checks met.**" in text and "| s | 1.40 | 1.20* |" in text
