@@ -34,9 +34,10 @@ round, so that the machine's noise hits all alike):
   table of its own with both tests' disagreements, Moller's leaks among them)
   and, with ``--sah``, the serial SAH
   tree on scenes up to :data:`SAH_MAX_TRIANGLES` triangles;
-* ours ``(kernel only)``: the traversal kernel's device time from OpenCL event
+* ours ``(kernel only)``: the traversal kernels' device time from OpenCL event
   profiling (:func:`lbvh.queries.traverse.trace_buffers` on rays already on the
-  device), same trees: the API rows minus the host work;
+  device: the packets' kernel and the single-ray walk of the rays it leaves),
+  same trees: the API rows minus the host work;
 * ``embree-1t``: embreex (Embree 4) ``scene.run`` on one thread (closest hit
   ``output=1``, any hit ``query='OCCLUDED'`` with ``dists = tmax``);
   ``embree-2t``: the same scene, the rays in :data:`EMBREE_CHUNKS` chunks
@@ -307,7 +308,7 @@ class OurKernel:
         _, device_rays, hit_buf, flag_buf = self._on_device(rays)
         out = traverse.trace_buffers(self.bvh, device_rays, any_hit=not rays.closest,
                                      hits=hit_buf, flags=flag_buf)
-        return None, dev.event_seconds([out.event])
+        return None, dev.event_seconds(out.kernels)   # the packets' kernel and the single-ray walk
 
     def counters(self, rays: RaySet) -> tuple[float, float] | None:
         """Those of the API row: the same tree and the same (watertight) kernel."""

@@ -276,13 +276,20 @@ class DeviceHits:
     ``hits``: four planes of ``count`` float32 (t, u, v, primitive as int32 bits; see
     :func:`read_hits`); ``flags``: ``int32`` flag words;
     ``counters``: ``int32 (count, 2)`` (nodes visited, triangles tested) or ``None``;
-    ``event``: the kernel's event.
+    ``event``: the last kernel's event (the answers are written when it is done);
+    ``kernels``: the events of every kernel of the walk (the packets' and the single-ray
+    walk's, :mod:`lbvh.queries.packets`), whose device times add up to the walk's.
     """
     count: int
     hits: cl.Buffer
     flags: cl.Buffer
     counters: cl.Buffer | None
     event: cl.Event
+    kernels: list[cl.Event] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if not self.kernels:
+            self.kernels = [self.event]
 
 
 # -- programs -------------------------------------------------------------------
@@ -469,13 +476,14 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
         raise ValueError("packets=True: packets run on a CPU device through 8-wide records, "
                          "without counters, in the default node order")
     deferred = None
+    kernels: list[cl.Event] = []
     if packets or (packets is None and can and count >= PACKETS_FROM):
         # packets where they are coherent; the rays of the others, listed in
         # `deferred`, go through the single-ray walk next (lbvh.queries.packets)
         deferred = ctx.memory.alloc(4 * count)
         ev = trace_packets(target, rays, any_hit=any_hit, defines=all_defines, hits=hits,
                            flags=flags, order=order, deferred=deferred, wait_for=wait_for)
-        order, wait_for = deferred, [ev]
+        order, wait_for, kernels = deferred, [ev], [ev]
         all_defines["RAY_ORDER"] = 1
     launch = _launch(ctx, count)
     ev = dev.run(ctx, KERNEL_FILE, "traverse", launch, tree.nodes, wide.buffer, tree.prim_order,
@@ -486,7 +494,7 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
                  defines=all_defines, wait_for=wait_for)
     if deferred is not None:
         ctx.memory.free(deferred)   # released once the walk that reads it is done
-    return DeviceHits(count, hits, flags, counter_buf if counters else None, ev)
+    return DeviceHits(count, hits, flags, counter_buf if counters else None, ev, kernels + [ev])
 
 
 def read_hits(ctx: dev.Context, out: DeviceHits) -> np.ndarray:
