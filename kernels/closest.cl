@@ -2,7 +2,7 @@
  * nearest triangle within max_distance (lbvh/queries/closest.py).
  *
  * Traversal: best first over the tree's wide records (WIDE=1; kernels/wide.cl),
- * or over its binary nodes (docs/layout.md) where the records would not fit. A
+ * or over its binary nodes (docs/pages/layout.md) where the records would not fit. A
  * node is entered only if the squared distance from the point to its box is no
  * more than the best squared distance found so far; of the children entered
  * the nearest is visited first and the others pushed with their box distances,

@@ -1,6 +1,6 @@
 /* Shared definitions of the lbvh kernels: the node layout and the triangle box.
  *
- * Node layout (docs/layout.md): a node is 32 bytes, two float4.
+ * Node layout (docs/pages/layout.md): a node is 32 bytes, two float4.
  *   node[2*i]   = (lower.x, lower.y, lower.z, as_float(a))
  *   node[2*i+1] = (upper.x, upper.y, upper.z, as_float(b))
  *   internal node: a = left child, b = right child (both >= 0)

@@ -27,7 +27,7 @@
  *   the lanes are 25-30% faster with 30-bit keys and 10-15% with 63-bit keys
  *   on the CPU device. On a GPU a work-item takes one node (LANES 1, below).
  *
- * Numbering (docs/layout.md): internal node i is node i, leaf j is node n-1+j
+ * Numbering (docs/pages/layout.md): internal node i is node i, leaf j is node n-1+j
  * and holds sorted slot j. Parent links are written by the parent. The far
  * end j of node i's range goes where its lower.x will be, and a zero where
  * its lower.y will be: the build's refit (refit.cl, KARRAS_RANGES) reads the

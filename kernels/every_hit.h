@@ -2,7 +2,7 @@
  * kernels/all_hits.cl (one mesh) and kernels/instance_hits.cl (each instance
  * of a scene) share.
  *
- * A depth-first traversal of the binary nodes (docs/layout.md) enters every
+ * A depth-first traversal of the binary nodes (docs/pages/layout.md) enters every
  * node whose box the ray's [tmin, tmax] enters, by the slab test of
  * kernels/ray_triangle.h, and tests every triangle of every such leaf with
  * the watertight test under EDGE_RULE (a crossing through a shared edge or

@@ -1,7 +1,7 @@
 /* Rays through a two-level scene: a top-level tree over instances, each a
  * mesh's tree placed by a transform (lbvh/queries/instances.py, lbvh.Scene).
  *
- * The top level is an LBVH over the instances' world boxes (docs/layout.md;
+ * The top level is an LBVH over the instances' world boxes (docs/pages/layout.md;
  * its slots name instances through top_order). The meshes' trees sit one
  * after the other in up to four node arrays (nodes, nodes1..3: chunks of the
  * device's largest allocation, kernels/instance_ray.h), one prim_order and

@@ -1,7 +1,7 @@
 /* Box queries: the triangles whose boxes overlap each query box
  * (lbvh/queries/overlap.py).
  *
- * A depth-first traversal of the binary nodes (docs/layout.md) enters a node
+ * A depth-first traversal of the binary nodes (docs/pages/layout.md) enters a node
  * whose box overlaps the query box (closed boxes: touching counts), and at the
  * leaves tests each triangle's own box, the min and max of its three vertices.
  * Every comparison is of float32 values as they are, with no arithmetic, so the

@@ -201,7 +201,7 @@ inline void cost_only(int x, vfloat_t *vnode_floats, vint_t *node_words, vfloat_
  * node on the way up; a node with fewer than `min_leaves` is not a treelet
  * root this round, only its cost is updated (the treelets of small subtrees
  * change little once a first round has rebuilt them: measured in
- * lbvh/builders/restructure.py round_min_leaves' commit and README.md). */
+ * lbvh/builders/restructure.py round_min_leaves' commit and docs/pages/builders.md). */
 __kernel void restructure_treelets(__global float4 *nodes, __global int *parent,
                                    __global float *cost, __global int *arrivals,
                                    __global int *sizes, __global const int *leaf_nodes,

@@ -1,4 +1,4 @@
-/* Ray traversal of a BVH in the project's layout (docs/layout.md), driven by
+/* Ray traversal of a BVH in the project's layout (docs/pages/layout.md), driven by
  * lbvh/queries/traverse.py. The ray's constants, the slab test and the triangle
  * tests are kernels/ray_triangle.h's.
  *

@@ -1,5 +1,5 @@
 /* Wide records for the traversal, driven by lbvh/wide.py: any binary tree of
- * the layout (docs/layout.md) collapsed into nodes of up to WIDTH children,
+ * the layout (docs/pages/layout.md) collapsed into nodes of up to WIDTH children,
  * each record holding its children's boxes in SIMD-friendly rows, so that one
  * vector slab test covers all children of a node (Wald, Benthin, Boulos 2008,
  * "Getting Rid of Packets: Efficient SIMD Single-Ray Traversal using

@@ -13,7 +13,7 @@ Entry points:
     lbvh.render(bvh, lbvh.Camera(...), mode)
     lbvh.sah_cost(bvh), lbvh.tree_quality(bvh)  (the tree's quality)
 Devices are chosen by name (``device=`` or ``$LBVH_DEVICE``, :mod:`lbvh.device`).
-The tree layout is documented in docs/layout.md.
+The tree layout is documented in docs/pages/layout.md.
 
 The package, in layers (a module imports only from layers above it in this list):
 

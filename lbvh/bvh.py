@@ -2,7 +2,7 @@
 
 The device state is two values (:mod:`lbvh.tree`): the :class:`~lbvh.tree.Mesh`
 and the :class:`~lbvh.tree.Tree` a builder made. The numpy views of
-docs/layout.md, the traversal's wide records, the faces in slot order and the
+docs/pages/layout.md, the traversal's wide records, the faces in slot order and the
 depth are made on first use and kept here; a refit renews what depends on the
 boxes. When a BVH is dropped its tree's buffers and its caches go back to the
 context's memory (:mod:`lbvh.device.memory`), where the next build of the
@@ -172,7 +172,7 @@ class BVH:
 
     # -- checks and reports ---------------------------------------------------
     def validate(self) -> None:
-        """Check every invariant of docs/layout.md; raise ``BVHValidationError`` on the first violation."""
+        """Check every invariant of docs/pages/layout.md; raise ``BVHValidationError`` on the first violation."""
         validate_tree(self.nodes, self.parent, self.prim_order, self.root, self.vertices, self.faces,
                       self.tree.clipped_leaves)
 

@@ -1,4 +1,4 @@
-"""The node record shared by every builder, the device and the host (docs/layout.md)."""
+"""The node record shared by every builder, the device and the host (docs/pages/layout.md)."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,7 +1,7 @@
 """The values every builder and optimiser takes and returns: a mesh and a tree on the device.
 
 A :class:`Mesh` is the triangles (host copies and device buffers); a
-:class:`Tree` is a hierarchy over them in the layout of docs/layout.md: node
+:class:`Tree` is a hierarchy over them in the layout of docs/pages/layout.md: node
 records, parents and the primitive order on the device, with its root, sizes
 and where its leaves are. Builders (:mod:`lbvh.builders`) make a ``Tree``
 from a ``Mesh``; optimisers (treelet restructuring, the leaf collapse) take
@@ -59,7 +59,7 @@ class Mesh:
 
 @dataclass(frozen=True)
 class Tree:
-    """A tree on the device in the layout of docs/layout.md.
+    """A tree on the device in the layout of docs/pages/layout.md.
 
     Attributes:
         ctx: the context its buffers belong to.
@@ -74,7 +74,7 @@ class Tree:
         report: the build's figures, if it was built here.
         clipped_leaves: the tree has spatial splits (``builder="sbvh"``): a triangle may
             have several slots, and a leaf's box holds the parts of its triangles, not
-            their whole boxes (docs/layout.md).
+            their whole boxes (docs/pages/layout.md).
     """
     ctx: Context
     nodes: cl.Buffer

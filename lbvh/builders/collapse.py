@@ -12,7 +12,7 @@ Works on any tree in the project's layout: a subtree becomes a leaf only when
 its slots of ``prim_order`` are contiguous (always true for Karras trees and
 for the SAH builder's trees) and it holds at most ``max_leaf_size`` triangles.
 Kept nodes keep their relative order, so the root stays node 0 and the
-Karras numbering's internal-nodes-first order survives (docs/layout.md).
+Karras numbering's internal-nodes-first order survives (docs/pages/layout.md).
 
 :func:`collapse_numpy` is the numpy twin of the decision and of the compacted
 tree; with correctly rounded float32 division on the device (PoCL) both agree

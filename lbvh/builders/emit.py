@@ -2,7 +2,7 @@
 
 Writes the child links of the ``n - 1`` internal nodes, the leaf records
 (unless the build's refit is to write them) and the parent links, in the
-numbering of docs/layout.md. Boxes are left to the refit (stage 6).
+numbering of docs/pages/layout.md. Boxes are left to the refit (stage 6).
 """
 from __future__ import annotations
 

@@ -20,7 +20,7 @@ the node owns; at the root every triangle's own box). At every node:
 
 A triangle may then sit in several leaves: ``prim_order`` holds one slot per
 reference (longer than the mesh), and a leaf's box holds the parts of its
-triangles, not their whole boxes (docs/layout.md: "spatial splits"). The
+triangles, not their whole boxes (docs/pages/layout.md: "spatial splits"). The
 boxes are computed in float64 and rounded outwards to float32, so every part
 of every triangle lies in the box of a leaf that references it. The number of
 references is kept below ``max_growth`` times the triangles (spatial splits

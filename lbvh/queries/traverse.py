@@ -794,7 +794,7 @@ _OCCLUDED_RETURNS = """
         ``t, prim, u, v`` describe the hit that was found, not necessarily the closest.
 """
 _TARGET_DOC = """
-        target: an :class:`lbvh.BVH` (any builder; the kernel reads only docs/layout.md)."""
+        target: an :class:`lbvh.BVH` (any builder; the kernel reads only docs/pages/layout.md)."""
 
 
 def query_doc(which: str, *, target: bool) -> str:

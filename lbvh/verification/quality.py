@@ -1,4 +1,4 @@
-"""Quality of a BVH in the project's layout (docs/layout.md), whoever built it.
+"""Quality of a BVH in the project's layout (docs/pages/layout.md), whoever built it.
 
 SAH cost (MacDonald & Booth 1990; Goldsmith & Salmon 1987), normalised by the
 root's surface area so that trees of different scenes compare::

@@ -1,4 +1,4 @@
-"""Host-side checker of a BVH in the project's layout (docs/layout.md).
+"""Host-side checker of a BVH in the project's layout (docs/pages/layout.md).
 
 It reads only the public arrays, so it checks any builder's tree the same way,
 and raises :class:`BVHValidationError` with the first violation it finds.
@@ -12,7 +12,7 @@ from ..layout import children_of, is_leaf, prim_range_of
 
 
 class BVHValidationError(ValueError):
-    """A BVH broke one of the invariants of docs/layout.md."""
+    """A BVH broke one of the invariants of docs/pages/layout.md."""
 
 
 def _fail(msg: str) -> None:
@@ -25,7 +25,7 @@ def _first(mask: np.ndarray) -> int:
 
 def validate_tree(nodes: np.ndarray, parent: np.ndarray, prim_order: np.ndarray, root: int,
                   vertices: np.ndarray, faces: np.ndarray, clipped_leaves: bool = False) -> None:
-    """Check every invariant of docs/layout.md; raise on the first violation.
+    """Check every invariant of docs/pages/layout.md; raise on the first violation.
 
     ``clipped_leaves``: a tree with spatial splits (``builder="sbvh"``): a triangle may
     have several slots (at least one), and a leaf's box holds the parts of its
