@@ -70,13 +70,13 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
         progress: a progress bar on stderr for the long builds (the SAH reference
             over 200K triangles or more): ``None`` (default) when stderr is a
             terminal, ``True`` or ``False`` to force it (:mod:`lbvh.progress`).
-        key_bits, auto_duplicate_fraction, treelet_rounds, treelet_leaves,
-            treelet_min_leaves: the fields of
-            ``LBVHOptions`` as keywords (``key_bits``: 30, 63 or ``"auto"``);
-            not given, the documented default.
-        c_node, c_tri, max_leaf_size: the fields of ``SAHOptions`` (``"sah"``) or, with
-            ``collapse=True``, of ``CollapseOptions``; ``max_leaf_size`` alone: of
-            ``SplitOptions`` (``"median"``, ``"midpoint"``); not given, the default.
+        key_bits: a field of ``LBVHOptions`` as a keyword (30, 63 or ``"auto"``), as
+            are ``auto_duplicate_fraction``, ``treelet_rounds``, ``treelet_leaves`` and
+            ``treelet_min_leaves``; not given, the documented default.
+        c_node: a field of ``SAHOptions`` (``"sah"``) or, with ``collapse=True``, of
+            ``CollapseOptions``, as are ``c_tri`` and ``max_leaf_size``;
+            ``max_leaf_size`` alone: of ``SplitOptions`` (``"median"``,
+            ``"midpoint"``); not given, the default.
             ``rays`` (an ``(origins, directions)`` pair or :class:`lbvh.RaySample`),
             ``ray_prior``, ``ray_candidates`` (``"sah"``): splits costed by a sample
             of the rays the tree is for (see :class:`lbvh.SAHOptions`).

@@ -1,6 +1,8 @@
 """The wheel works outside the repository: it carries the kernels, the teapot, the
-saved views and ``py.typed``, and every example of the README's "Using it",
-"Ray queries and images" and "Point queries" sections runs from it.
+saved views and ``py.typed``, and every example of the README's sections of
+:data:`SECTIONS` and of the documentation's pages (docs/pages) runs from it:
+the ```python and ```sh blocks (```console blocks are commands for a checkout,
+```py blocks sketches that need more than lbvh).
 
 The wheel is built from the checkout and installed (without its dependencies:
 the machine may have no network) into a fresh virtual environment; that
@@ -9,8 +11,8 @@ environment reads the dependencies from the test's own environment through a
 site-packages and does not run that folder's ``.pth`` files, so the editable
 install of the checkout is not seen (a test checks ``lbvh.__file__``). The
 examples run in a temporary folder outside the repository, with the
-environment's ``bin`` first on ``PATH``; they are read from README.md, so the
-test follows the README.
+environment's ``bin`` first on ``PATH``; they are read from README.md and the
+pages, so the test follows the documentation.
 """
 from __future__ import annotations
 
@@ -27,8 +29,11 @@ import pytest
 from conftest import REPO
 from lbvh.version import __version__
 
-#: The README sections whose examples must run from a wheel.
-SECTIONS = ("Using it", "Ray queries and images", "Point queries", "Scenes of many meshes")
+#: The README sections whose examples must run from a wheel (and every page's).
+SECTIONS = ("Rays", "Point queries", "Scenes of many meshes", "trimesh's interfaces",
+            "The command line")
+#: The documentation's pages.
+PAGES = sorted((REPO / "docs" / "pages").glob("*.md"))
 DATA_FILES = ("lbvh/py.typed", "lbvh/data/teapot.obj", "lbvh/data/cameras.json",
               "lbvh/data/README.md", "lbvh/data/licenses/common-3d-test-models_README.md")
 
@@ -40,11 +45,18 @@ def readme_section(title: str) -> str:
     return match.group(1)
 
 
+def code_blocks(text: str) -> list[tuple[str, str]]:
+    """``(language, code)`` of the ```python and ```sh blocks of a Markdown text."""
+    return re.findall(r"^```(python|sh)\n(.*?)^```", text, re.S | re.M)
+
+
 def readme_examples() -> list[tuple[str, str, str]]:
-    """``(section, language, code)`` of every ```python and ```sh block of :data:`SECTIONS`."""
-    return [(title, lang, code) for title in SECTIONS
-            for lang, code in re.findall(r"^```(python|sh)\n(.*?)^```", readme_section(title),
-                                         re.S | re.M)]
+    """``(where, language, code)`` of every ```python and ```sh block of the README's
+    :data:`SECTIONS` and of the documentation's pages."""
+    return ([(title, lang, code) for title in SECTIONS
+             for lang, code in code_blocks(readme_section(title))]
+            + [(f"docs/pages/{page.name}", lang, code) for page in PAGES
+               for lang, code in code_blocks(page.read_text())])
 
 
 class Installed:
@@ -124,7 +136,10 @@ def test_the_installed_command_prints_its_version(installed):
 def test_the_readme_examples_are_there():
     examples = readme_examples()
     languages = [lang for _, lang, _ in examples]
-    assert languages.count("python") >= 2 and languages.count("sh") >= 1, examples
+    assert languages.count("python") >= 10 and languages.count("sh") >= 2, examples
+    # every page that shows how to call lbvh has a running example
+    for page in ("start.md", "rays.md", "points.md", "scenes.md"):
+        assert any(where == f"docs/pages/{page}" for where, _, _ in examples), page
     for title, _, code in examples:
         # nothing of the source tree: a wheel user has none of it
         assert "scenes/" not in code and "../shared" not in code, (title, code)

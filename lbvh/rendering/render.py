@@ -279,8 +279,10 @@ def render(bvh: Any, camera: Camera, mode: str = "normals", *, ao_samples: int =
 
     Args:
         mode: one of :data:`MODES`.
-        ao_samples, ao_distance, seed: ambient occlusion settings (mode ``"ao"``),
-            see :func:`ambient_occlusion`.
+        ao_samples: rays per pixel of ambient occlusion (mode ``"ao"``), see
+            :func:`ambient_occlusion`.
+        ao_distance: their reach, a fraction of the scene's diagonal.
+        seed: their random generator's seed.
         triangle_test: ``"watertight"`` or ``"moller"``, see :func:`lbvh.queries.traverse.intersect`.
         order: the closest-hit traversal's order, ``"ordered"`` or ``"global"`` (the same
             image), see :func:`lbvh.queries.traverse.intersect`.

@@ -68,7 +68,7 @@ def t_bound(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarray, direct
 #: the rest is double rounding, far below. Measured on the hard cases
 #: (slivers, zero-area triangles, coordinates from 1e-40 to 1e38): at most
 #: 1.2. Without doubles (``NO_FP64``) the float32 arithmetic holds it only on
-#: well-conditioned triangles of moderate coordinates: see the README.
+#: well-conditioned triangles of moderate coordinates: see docs/pages/stability.md.
 CLOSEST_BOUND_ULPS = 4
 
 
