@@ -235,13 +235,13 @@ INSIDE_QUERIES = ("signed_distance", "contains", "winding_numbers")
 
 def time_moments(bvh: lbvh.BVH, v: np.ndarray, f: np.ndarray) -> dict[str, float]:
     """Seconds to make the winding moments of ``bvh`` (what its first inside query pays
-    before any point is answered): on the device (``bvh.winding_moments()``, the
+    before any point is answered): on the device (``bvh.query_data.winding_moments()``, the
     kernels compiled first) and by the numpy twins on the host in the same run (what
     it paid before kernels/winding_moments.cl)."""
-    wide = bvh.wide_records()
+    wide = bvh.query_data.wide_records()
     bvh.ctx.memory.free(winding_moments.make_moments(bvh.ctx, bvh.tree, bvh.mesh, wide))
     t0 = time.perf_counter()
-    bvh.winding_moments()
+    bvh.query_data.winding_moments()
     device = time.perf_counter() - t0
     t0 = time.perf_counter()
     rows = winding_moments.node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f)

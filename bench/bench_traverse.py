@@ -306,7 +306,7 @@ class OurKernel:
 
     def trace(self, rays: RaySet) -> tuple[None, float]:
         _, device_rays, hit_buf, flag_buf = self._on_device(rays)
-        out = traverse.trace_buffers(self.bvh, device_rays, any_hit=not rays.closest,
+        out = traverse.trace_buffers(self.bvh.query_data, device_rays, any_hit=not rays.closest,
                                      hits=hit_buf, flags=flag_buf)
         return None, dev.event_seconds(out.kernels)   # the packets' kernel and the single-ray walk
 

@@ -263,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
 
             def ours(bvh: BVH) -> float:
                 t = time.perf_counter()
-                tv.trace_buffers(bvh, rays)
+                tv.trace_buffers(bvh.query_data, rays)
                 bvh.ctx.queue.finish()
                 return time.perf_counter() - t
 
@@ -278,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
                 peer.append(embree_2t(built, so, sd))
             for label in labels:
                 bvh = trees[label]
-                counted = tv.trace_buffers(bvh, rays, counters=True)
+                counted = tv.trace_buffers(bvh.query_data, rays, counters=True)
                 counts = np.empty((len(so), 2), np.int32)
                 cl.enqueue_copy(bvh.ctx.queue, counts, counted.counters, is_blocking=True)
                 agree = (float((bvh.intersect(o, d).prim == want).mean()) if index is None

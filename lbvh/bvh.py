@@ -1,12 +1,13 @@
-"""The public BVH: a facade over the mesh, the tree and the query caches, which it alone owns.
+"""The public BVH: a facade over the mesh, the tree and the query data.
 
 The device state is two values (:mod:`lbvh.tree`): the :class:`~lbvh.tree.Mesh`
 and the :class:`~lbvh.tree.Tree` a builder made. The numpy views of
-docs/pages/layout.md, the traversal's wide records, the faces in slot order and the
-depth are made on first use and kept here; a refit renews what depends on the
-boxes. When a BVH is dropped its tree's buffers and its caches go back to the
-context's memory (:mod:`lbvh.device.memory`), where the next build of the
-same size finds them.
+docs/pages/layout.md are made on first use and kept here; what the queries make of
+the tree (wide records, faces in slot order, moments, depth) has its one owner in
+:class:`lbvh.queries.data.QueryData`, which the BVH holds and gives to every query.
+A refit renews what depends on the boxes. When a BVH is dropped its tree's buffers
+and its query data's go back to the context's memory (:mod:`lbvh.device.memory`),
+where the next build of the same size finds them.
 """
 from __future__ import annotations
 
@@ -16,13 +17,11 @@ from concurrent.futures import Future
 from typing import Any
 
 import numpy as np
-import pyopencl as cl
 import pyopencl.array as cl_array
 
 from . import device as dev
 from .builders.refit import refit_boxes
-from .builders.restructure import restructured
-from .layout import NODE_DTYPE, children_of, is_leaf, node_depths, parents_of, prim_range_of
+from .layout import NODE_DTYPE, children_of, is_leaf, parents_of, prim_range_of
 from .mesh import as_faces, as_vertices
 from .queries import all_hits as hits_along, closest, overlap, traverse, winding
 from .queries.all_hits import AllHits
@@ -30,8 +29,7 @@ from .queries.closest import Closest
 from .queries.overlap import Overlaps
 from .queries.rays import InvalidRays
 from .queries.traverse import DeviceHitArrays, Hits
-from .queries.winding_moments import make_moments
-from .queries.wide import Wide, make_wide, release_wide, wide_buffers, write_records
+from .queries.data import QueryData
 from .report import BuildReport, tree_statistics
 from .tree import Mesh, Tree, upload_tree
 from .verification.validate import BVHValidationError, validate_tree
@@ -66,16 +64,10 @@ class BVH:
         self.mesh = mesh
         self.tree = tree
         self._host: dict[str, np.ndarray] = {}
-        self._wide: Wide | None = None
-        self._slot_faces: cl.Buffer | None = None
-        self._slot_triangles: cl.Buffer | None = None
-        self._moments: tuple[Wide, cl.Buffer] | None = None
-        self._depth: int | None = None
-        self._winding: BVH | None = None   # the winding walk's copy (winding_target)
-        # Everything handed back when this BVH is dropped: the tree's buffers and
-        # the caches' (appended as they are made).
-        self._owned: list[cl.Buffer] = tree.buffers()
-        weakref.finalize(self, tree.ctx.memory.dropped, self._owned)
+        self._queries = QueryData(mesh, tree)
+        # The tree's buffers go back when this BVH is dropped; the query data's go
+        # with it (lbvh.queries.data).
+        weakref.finalize(self, tree.ctx.memory.dropped, tree.buffers())
 
     # -- what the tree and mesh say ---------------------------------------------
     ctx = property(lambda self: self.tree.ctx, doc="the :class:`lbvh.device.Context`")
@@ -159,10 +151,6 @@ class BVH:
     lower = property(lambda self: self.nodes["lower"], doc="float32 (num_nodes, 3)")
     upper = property(lambda self: self.nodes["upper"], doc="float32 (num_nodes, 3)")
 
-    def depths(self) -> np.ndarray:
-        """``int64 (num_nodes,)`` depth of every node, the root at 0."""
-        return node_depths(self.parent, self.root)
-
     @property
     def leaf_nodes(self) -> np.ndarray:
         """``int32`` indices of the leaf nodes."""
@@ -184,98 +172,14 @@ class BVH:
         rep.update_stats(stats)
         return rep
 
-    # -- query caches (lbvh.queries.target.QueryTarget) -------------------------
-    @dev.serialised
-    def wide_records(self, width: int | None = None, max_bytes: int | None = None) -> Wide:
-        """The traversal's wide records (:mod:`lbvh.queries.wide`), made on first use;
-        records of another ``width`` (4 or 8) replace them, and ``max_bytes`` as
-        :func:`~lbvh.queries.wide.make_wide` takes it."""
-        cached = self._wide
-        if cached is not None and (width is None or cached.width == width or not cached.packed) \
-                and max_bytes is None:
-            return cached
-        wide = make_wide(self.tree, width, max_bytes)
-        self._drop_wide()
-        self._wide = wide
-        self._owned.extend(wide_buffers(wide))
-        return wide
-
-    def _drop_wide(self) -> None:
-        wide, self._wide = self._wide, None
-        if wide is not None:
-            gone = {id(b) for b in wide_buffers(wide)}
-            self._owned[:] = [b for b in self._owned if id(b) not in gone]
-            release_wide(self.ctx.memory, wide)
-
-    @dev.serialised
-    def slot_faces(self) -> cl.Buffer:
-        """``uint32 (F, 3)`` faces in slot order on the device, made on first use."""
-        if self._slot_faces is None:
-            self._slot_faces = traverse.order_faces(self.tree, self.mesh)
-            self._owned.append(self._slot_faces)
-        return self._slot_faces
-
-    @dev.serialised
-    def slot_triangles(self) -> cl.Buffer:
-        """``float32 (F, 3, 3)`` each slot's triangle's corners on the device
-        (:func:`lbvh.queries.traverse.order_triangles`), made on first use; a refit,
-        which moves the vertices, renews it."""
-        if self._slot_triangles is None:
-            self._slot_triangles = traverse.order_triangles(self.tree, self.mesh)
-            self._owned.append(self._slot_triangles)
-        return self._slot_triangles
-
-    def _drop_slot_triangles(self) -> None:
-        held, self._slot_triangles = self._slot_triangles, None
-        if held is not None:
-            self._free_cached(held)
-
-    def _free_cached(self, buf: cl.Buffer) -> None:
-        """Give back one cache's buffer now (no longer dropped with this BVH)."""
-        self._owned[:] = [b for b in self._owned if b is not buf]
-        self.ctx.memory.free(buf)
-
-    @dev.serialised
-    def winding_moments(self) -> cl.Buffer:
-        """The moments of the winding number query on the device, made on first use
-        (:func:`lbvh.queries.winding_moments.make_moments`) for the walk that
-        :func:`lbvh.queries.closest.walk_of` picks: per wide record where the records
-        are packed, else per node; a refit, or records of another width, renew them."""
-        wide = self.wide_records()
-        if self._moments is None or self._moments[0] is not wide:
-            self._drop_moments()
-            buf = make_moments(self.ctx, self.tree, self.mesh, wide, winding.DEFAULT_ORDER)
-            self._moments = (wide, buf)
-            self._owned.append(buf)
-        return self._moments[1]
-
-    @dev.serialised
-    def winding_target(self) -> "BVH":
-        """The BVH that the winding-number walk runs on (:meth:`contains`,
-        :meth:`winding_numbers`, the sign of :meth:`signed_distance`): for an LBVH tree
-        without treelet rounds (:func:`lbvh.queries.winding.walks_a_copy`) a copy of it after
-        :data:`~lbvh.queries.winding.WINDING_TREELET_ROUNDS` rounds of treelet
-        restructuring, over the same mesh, made on first use, refitted with this one and
-        walked through records of this one's width; otherwise this BVH itself."""
-        if not winding.walks_a_copy(self.tree.builder) or self.num_prims < 3:
-            return self
-        if self._winding is None:
-            self._winding = BVH(self.mesh, restructured(self.tree, winding.WINDING_TREELET_ROUNDS,
-                                                        winding.WINDING_TREELET_LEAVES))
-        if self._wide is not None:
-            self._winding.wide_records(width=self._wide.width)
-        return self._winding
-
-    def _drop_moments(self) -> None:
-        held, self._moments = self._moments, None
-        if held is not None:
-            self._free_cached(held[1])
-
-    def traversal_depth(self) -> int:
-        """The tree's depth, 0 for a root leaf (its topology never changes)."""
-        if self._depth is None:
-            self._depth = int(self.depths().max()) if self.num_nodes > 1 else 0
-        return self._depth
+    # -- the query data (lbvh.queries.data) -----------------------------------------
+    @property
+    def query_data(self) -> QueryData:
+        """What the queries need of the tree beyond it, made on first use and owned
+        there (:class:`lbvh.queries.data.QueryData`: the wide records, the faces and
+        triangles in slot order, the winding numbers' moments and walk, the depth);
+        the query modules' functions take it (:mod:`lbvh.queries.target`)."""
+        return self._queries
 
     # -- animation ------------------------------------------------------------
     @dev.serialised
@@ -294,28 +198,13 @@ class BVH:
         if v.shape != self.vertices.shape:
             raise ValueError(f"vertices: shape {v.shape}, the tree was built over {self.vertices.shape}")
         mesh = self.mesh.with_vertices(self.ctx, v)
-        self._refit_over(mesh)
-        if self._winding is not None:
-            self._winding._refit_over(mesh)   # the winding walk's copy: the same vertices
-        return self
-
-    def _refit_over(self, mesh: Mesh) -> None:
-        """Refit the tree's boxes to ``mesh`` (this one's faces over moved vertices, on
-        the device) and renew the caches made of the old ones."""
         tree = self.tree
-        leaf_list = tree.leaf_walks()[0]
         refit_boxes(self.ctx, mesh.vertices_buf, mesh.faces_buf, tree.prim_order, tree.nodes,
-                    tree.parent, tree.num_prims, tree.num_nodes, leaf_list)
+                    tree.parent, tree.num_prims, tree.num_nodes, tree.leaf_walks()[0])
         self.mesh = mesh
         self._host.clear()
-        self._drop_moments()   # of the old boxes: made again on the next query
-        self._drop_slot_triangles()   # of the old vertices: likewise
-        if self._wide is not None:
-            write_records(self.tree, self._wide)   # the traversal's copies of the boxes
-
-    def leaf_walks(self) -> tuple[cl.Buffer | None, int, int]:
-        """Where bottom-up walks start (:meth:`lbvh.tree.Tree.leaf_walks`)."""
-        return self.tree.leaf_walks()
+        self._queries.refit(mesh)   # what the queries made of the old boxes
+        return self
 
     # -- ray queries (lbvh/queries/traverse.py, kernels/traverse.cl) ------------
     def intersect(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
@@ -323,7 +212,7 @@ class BVH:
                   batch_size: int = traverse.DEFAULT_BATCH, stack_size: int | None = None,
                   invalid_rays: InvalidRays = "raise",
                   order: traverse.NodeOrder = "ordered") -> Hits | DeviceHitArrays:
-        return traverse.intersect(self, origins, directions, tmin, tmax,
+        return traverse.intersect(self._queries, origins, directions, tmin, tmax,
                                   triangle_test=triangle_test, counters=counters,
                                   batch_size=batch_size, stack_size=stack_size,
                                   invalid_rays=invalid_rays, order=order)
@@ -333,7 +222,7 @@ class BVH:
                  batch_size: int = traverse.DEFAULT_BATCH, stack_size: int | None = None,
                  return_hits: bool = False, invalid_rays: InvalidRays = "raise"
                  ) -> np.ndarray | Hits | cl_array.Array | DeviceHitArrays:
-        return traverse.occluded(self, origins, directions, tmin, tmax,
+        return traverse.occluded(self._queries, origins, directions, tmin, tmax,
                                  triangle_test=triangle_test, counters=counters,
                                  batch_size=batch_size, stack_size=stack_size,
                                  return_hits=return_hits, invalid_rays=invalid_rays)
@@ -344,7 +233,7 @@ class BVH:
                         stack_size: int | None = None, invalid_rays: InvalidRays = "raise",
                         order: traverse.NodeOrder = "ordered"
                         ) -> "Future[Hits | DeviceHitArrays]":
-        return traverse.intersect_async(self, origins, directions, tmin, tmax,
+        return traverse.intersect_async(self._queries, origins, directions, tmin, tmax,
                                         triangle_test=triangle_test, counters=counters,
                                         batch_size=batch_size, stack_size=stack_size,
                                         invalid_rays=invalid_rays, order=order)
@@ -354,7 +243,7 @@ class BVH:
                        counters: bool = False, batch_size: int = traverse.DEFAULT_BATCH,
                        stack_size: int | None = None, return_hits: bool = False,
                        invalid_rays: InvalidRays = "raise") -> "Future[Any]":
-        return traverse.occluded_async(self, origins, directions, tmin, tmax,
+        return traverse.occluded_async(self._queries, origins, directions, tmin, tmax,
                                        triangle_test=triangle_test, counters=counters,
                                        batch_size=batch_size, stack_size=stack_size,
                                        return_hits=return_hits, invalid_rays=invalid_rays)
@@ -372,7 +261,7 @@ class BVH:
         crossing through a shared edge or vertex once (``signed``: +1 leaving a
         triangle by its front, -1 entering by it); see
         :func:`lbvh.queries.all_hits.count_hits`."""
-        return hits_along.count_hits(self, origins, directions, tmin, tmax, signed=signed,
+        return hits_along.count_hits(self._queries, origins, directions, tmin, tmax, signed=signed,
                                      batch_size=batch_size, invalid_rays=invalid_rays)
 
     def all_hits(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
@@ -381,7 +270,7 @@ class BVH:
         """Every hit of each ray in ``[tmin, tmax]``, nearest first, as flat arrays with
         per-ray offsets (at most ``max_hits`` per ray, the nearest); see
         :func:`lbvh.queries.all_hits.all_hits`."""
-        return hits_along.all_hits(self, origins, directions, tmin, tmax, max_hits=max_hits,
+        return hits_along.all_hits(self._queries, origins, directions, tmin, tmax, max_hits=max_hits,
                                    batch_size=batch_size, invalid_rays=invalid_rays)
 
     # -- point queries (lbvh/queries/closest.py, kernels/closest.cl) ------------
@@ -390,30 +279,30 @@ class BVH:
         """The closest point of the mesh to each query point within ``max_distance``:
         distance, point, triangle and barycentrics; see
         :func:`lbvh.queries.closest.closest_points`."""
-        return closest.closest_points(self, points, max_distance, batch_size=batch_size)
+        return closest.closest_points(self._queries, points, max_distance, batch_size=batch_size)
 
     # -- inside and signed distance (lbvh/queries/winding.py, kernels/winding.cl) ----
     def winding_numbers(self, points: Any, *, beta: float = winding.DEFAULT_BETA,
                         node_error: float = winding.NODE_ERROR) -> np.ndarray:
         """``float32 (N,)``: the generalised winding number of each point (1 inside a
         closed mesh, 0 outside); see :func:`lbvh.queries.winding.winding_numbers`."""
-        return winding.winding_numbers(self, points, beta=beta, node_error=node_error)
+        return winding.winding_numbers(self._queries, points, beta=beta, node_error=node_error)
 
     def contains(self, points: Any, *, beta: float | None = None) -> np.ndarray:
         """``bool (N,)``: whether each point is inside the mesh (winding number > 1/2);
         see :mod:`lbvh.queries.winding` for what it answers on an open mesh, and
         :func:`lbvh.queries.winding.contains` for ``beta``."""
-        return winding.contains(self, points, beta=beta)
+        return winding.contains(self._queries, points, beta=beta)
 
     def signed_distance(self, points: Any, *, beta: float | None = None) -> np.ndarray:
         """``float32 (N,)``: the distance to the mesh, negative inside (Open3D's and
         warp's convention); see :func:`lbvh.queries.winding.signed_distance`."""
-        return winding.signed_distance(self, points, beta=beta)
+        return winding.signed_distance(self._queries, points, beta=beta)
 
     def overlapping(self, lower: Any, upper: Any) -> Overlaps:
         """The triangles whose boxes overlap each query box ``[lower[i], upper[i]]``, as
         flat arrays with offsets; see :func:`lbvh.queries.overlap.overlapping`."""
-        return overlap.overlapping(self, lower, upper)
+        return overlap.overlapping(self._queries, lower, upper)
 
     # -- persistence ------------------------------------------------------------
     def __reduce__(self) -> tuple:

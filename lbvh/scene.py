@@ -196,7 +196,7 @@ class Scene:
             slot_faces.append((bvh.faces[order].astype(np.int64) + vertex_base).astype(np.uint32))
             verts.append(bvh.vertices)
             roots.append((chunk << ROOT_BITS) | (node_base + bvh.root))
-            depth = max(depth, bvh.traversal_depth())
+            depth = max(depth, bvh.query_data.traversal_depth())
             node_base += bvh.num_nodes
             slot_base += bvh.num_prims
             vertex_base += len(bvh.vertices)
@@ -254,7 +254,7 @@ class Scene:
         nodes = tuple(self._chunks[min(k, len(self._chunks) - 1)] for k in range(NODE_CHUNKS))
         return SceneBuffers(self.top.tree, self._inverse, self._inst_root, nodes,
                             self._num_nodes, self._prim_order, self._vertices, self._slot_faces,
-                            max(self._mesh_depth, self.top.traversal_depth()),
+                            max(self._mesh_depth, self.top.query_data.traversal_depth()),
                             not any(m.tree.clipped_leaves for m in self.meshes), self._placements)
 
     # -- what it holds -------------------------------------------------------------

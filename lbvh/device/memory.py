@@ -183,7 +183,8 @@ class DeviceMemory:
             self._hand_out(buf, buf.nbytes, scope)
             return buf
 
-    def host_view(self, array: np.ndarray, *, output: bool = False) -> cl.Buffer:
+    def host_view(self, array: np.ndarray, *, output: bool = False,
+                  readable: bool = False) -> cl.Buffer:
         """A buffer on the C-contiguous, non-empty numpy ``array``'s own memory
         (``USE_HOST_PTR``): on a device that shares the host's memory (a CPU,
         ``ctx.is_cpu``) the kernels read, or with ``output`` write, the array itself,
@@ -191,27 +192,31 @@ class DeviceMemory:
         :func:`read_host_views` has returned. The caller releases the buffer; it
         holds no device memory of its own and is not counted in :attr:`in_use`.
         With ``LBVH_POISON_BYTE`` set, an ``output`` array is filled with it first,
-        as :meth:`alloc` fills its buffers (tests of unwritten results)."""
+        as :meth:`alloc` fills its buffers (tests of unwritten results); ``readable``:
+        an ``output`` the kernels read back too (``READ_WRITE``)."""
         if not array.flags.c_contiguous or array.nbytes == 0:
             raise ValueError("host_view: a C-contiguous, non-empty array")
         if output and _POISON is not None:
             array.view(np.uint8).fill(int(_POISON, 0))
-        flags = cl.mem_flags.WRITE_ONLY if output else cl.mem_flags.READ_ONLY
+        flags = (cl.mem_flags.READ_WRITE if readable else cl.mem_flags.WRITE_ONLY) if output \
+            else cl.mem_flags.READ_ONLY
         try:
             return cl.Buffer(self._ctx, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=array)
         except cl.Error as exc:
             raise DeviceError(f"lbvh: a buffer on {array.nbytes:,} bytes of host memory on "
                               f"{self._name} failed: {exc}") from exc
 
-    def host_outputs(self, *specs: tuple[tuple[int, ...], Any]) -> HostOutputs:
+    def host_outputs(self, *specs: tuple[tuple[int, ...], Any],
+                     readable: bool = False) -> HostOutputs:
         """Output arrays of the given ``(shape, dtype)`` specs, non-empty, in one block of
         host memory: one :meth:`host_view` on the block (``output``) and a sub-buffer on
         each array, which kernels write. One map of the block (:func:`read_host_views`
         of ``(out.block_buffer, out.block)``) then makes every array's contents the
         kernels' results: one wait for them all, where a host view per array waits once
         per array (35-40 us each for a one-ray query on PoCL). Each array starts at a
-        multiple of :attr:`sub_align`, as sub-buffers must. The caller releases
-        ``out.buffers`` and ``out.block_buffer``."""
+        multiple of :attr:`sub_align`, as sub-buffers must. ``readable``: the kernels
+        read the arrays back too (a walk's scratch among the answers). The caller
+        releases ``out.buffers`` and ``out.block_buffer``."""
         sizes = [math.prod(shape) * np.dtype(dtype).itemsize for shape, dtype in specs]
         if 0 in sizes:
             raise ValueError("host_outputs: an empty array")
@@ -219,12 +224,13 @@ class DeviceMemory:
         for nbytes in sizes[:-1]:
             offsets.append(offsets[-1] + -(-nbytes // self.sub_align) * self.sub_align)
         block = np.empty(offsets[-1] + sizes[-1], np.uint8)
-        parent = self.host_view(block, output=True)
+        parent = self.host_view(block, output=True, readable=readable)
+        access = cl.mem_flags.READ_WRITE if readable else cl.mem_flags.WRITE_ONLY
         arrays, subs = [], []
         try:
             for (shape, dtype), at, nbytes in zip(specs, offsets, sizes):
                 arrays.append(block[at:at + nbytes].view(dtype).reshape(shape))
-                subs.append(parent.get_sub_region(at, nbytes, cl.mem_flags.WRITE_ONLY))
+                subs.append(parent.get_sub_region(at, nbytes, access))
         except cl.Error as exc:
             for b in subs:
                 b.release()

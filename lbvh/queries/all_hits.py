@@ -37,7 +37,7 @@ import pyopencl as cl
 
 from .. import device as dev
 from .rays import InvalidRays, Rays, check_invalid_rays, check_rays, is_device_array
-from .target import QueryTarget
+from .target import QueryTarget, query_target
 from .wide import lane_defines
 from .traverse import FLAG_OVERFLOW, FLAG_VISIT_LIMIT, slab_pad, stack_bucket, stack_need
 
@@ -166,6 +166,7 @@ def count_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0
             splits (``builder="sbvh"``).
         RuntimeError: the traversal stack overflowed (a tree deeper than 768 levels).
     """
+    target = query_target(target)   # a BVH gives its query data
     batch = _check_batch(batch_size)
     if not isinstance(signed, (bool, np.bool_)):
         raise ValueError(f"signed: {signed!r}; expected True or False")
@@ -205,6 +206,7 @@ def all_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0
         lbvh.DeviceError: a batch's hits would not fit the device's largest buffer
             (a smaller ``batch_size`` or a ``max_hits`` makes them fit).
     """
+    target = query_target(target)   # a BVH gives its query data
     cap = _check_max_hits(max_hits)
     batch = _check_batch(batch_size)
     rays = _rays(origins, directions, tmin, tmax, invalid_rays)
@@ -257,6 +259,7 @@ def segment_work(target: QueryTarget, origins: Any, directions: Any, tmin: Any =
     those leaves. With ``tmax`` at the closest hit this is the work every traversal of
     this tree must do for the ray, whatever its order: what the ray-sampled cost
     (:func:`lbvh.verification.quality.ray_sampled_cost`) weighs."""
+    target = query_target(target)   # a BVH gives its query data
     batch = _check_batch(batch_size)
     rays = _rays(origins, directions, tmin, tmax, "raise")
     work = np.zeros((len(rays), 4), np.int32)

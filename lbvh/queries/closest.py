@@ -25,7 +25,7 @@ import pyopencl as cl
 from .. import device as dev
 from ..mesh import real_array
 from .ray_order import MIN_POINTS, ordered_points
-from .target import QueryTarget
+from .target import QueryTarget, query_target
 from .wide import lane_defines
 from .traverse import stack_bucket, stack_need
 
@@ -104,6 +104,7 @@ def _max_distance(max_distance: Any) -> np.float32:
 
 def stack_size_for(target: QueryTarget) -> int:
     """Stack entries for this tree: one push per level at most, rounded up to a bucket."""
+    target = query_target(target)   # a BVH gives its query data
     return stack_bucket(target.traversal_depth() + 1)
 
 
@@ -114,6 +115,7 @@ def walk_of(target: QueryTarget) -> tuple[tuple[cl.Buffer, int, int], dict[str, 
     of :mod:`lbvh.queries.wide`). Through the wide records where
     they fit (a record pushes all its lanes entered but one: the records' own stack
     need), else through the binary nodes (one push per level)."""
+    target = query_target(target)   # a BVH gives its query data
     wide = target.wide_records()
     if wide.packed:
         return ((wide.buffer, wide.root_x, wide.root_y),
@@ -141,6 +143,7 @@ def closest_points(target: QueryTarget, points: Any, max_distance: float = np.in
     Raises:
         ValueError: a bad point (named), a bad ``max_distance`` or ``batch_size``.
     """
+    target = query_target(target)   # a BVH gives its query data
     p = check_points(points)
     limit = _max_distance(max_distance)
     if not isinstance(batch_size, (int, np.integer)) or batch_size < 1:

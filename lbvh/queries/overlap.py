@@ -24,7 +24,7 @@ from .. import device as dev
 from ..builders.bounds import triangle_boxes_numpy
 from ..mesh import real_array
 from .closest import walk_of
-from .target import QueryTarget
+from .target import QueryTarget, query_target
 
 KERNEL_FILE = "overlap.cl"
 
@@ -104,6 +104,7 @@ def overlapping(target: QueryTarget, lower: Any, upper: Any) -> Overlaps:
         ValueError: a bad box (named).
         lbvh.DeviceError: the answer would not fit the device's largest buffer.
     """
+    target = query_target(target)   # a BVH gives its query data
     if target.tree.clipped_leaves:
         raise ValueError("overlapping: this tree has spatial splits (builder='sbvh'): its leaves "
                          "hold parts of triangles, not their boxes; build another tree for box "

@@ -20,7 +20,7 @@ import pyopencl as cl
 
 from .. import device as dev
 from .rays import DeviceRays
-from .target import QueryTarget
+from .target import QueryTarget, query_target
 
 KERNEL_FILE = "packet_traverse.cl"
 
@@ -69,6 +69,7 @@ def trace_packets(target: QueryTarget, rays: DeviceRays, *, any_hit: bool, defin
     rays' indices are written to ``deferred`` (``int32 (count,)``, -1 for the rays
     traced here) for the single-ray walk to trace in that order. Returns the kernel's
     event."""
+    target = query_target(target)   # a BVH gives its query data
     ctx, tree = target.ctx, target.tree
     wide = target.wide_records()
     count = int(rays.count)

@@ -1,8 +1,10 @@
-"""What a query needs of the tree it runs on: the one interface of :class:`lbvh.BVH`
-that the query modules see (they never import the facade, which imports them)."""
+"""What a query needs of the tree it runs on: the interface the query modules see
+(they never import the facade, which imports them). :class:`lbvh.queries.data.QueryData`
+is the one implementation; :class:`lbvh.BVH` holds one (``bvh.query_data``) and gives
+it to every query."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import pyopencl as cl
 
@@ -14,7 +16,7 @@ if TYPE_CHECKING:
 
 
 class QueryTarget(Protocol):
-    """A tree with its mesh and its query caches (:class:`lbvh.BVH` is one)."""
+    """A tree with its mesh and its query data (:class:`lbvh.queries.data.QueryData`)."""
     ctx: Context
     tree: Tree
     mesh: Mesh
@@ -34,8 +36,15 @@ class QueryTarget(Protocol):
 
     def winding_target(self) -> "QueryTarget":
         """The target the winding-number walk runs on (:mod:`lbvh.queries.winding`):
-        itself, or a restructured copy of its tree over the same mesh, cached."""
+        itself, or the query data of a restructured copy of its tree over the same
+        mesh, cached."""
 
     def winding_moments(self) -> cl.Buffer:
         """The moments of the winding numbers (:func:`lbvh.queries.winding_moments.make_moments`),
         cached."""
+
+
+def query_target(target: Any) -> QueryTarget:
+    """What a query runs on: an :class:`lbvh.BVH`'s query data (``bvh.query_data``), or
+    a query target as it is (the query modules' functions take either)."""
+    return getattr(target, "query_data", target)

@@ -63,7 +63,7 @@ from .exact import collinear
 from .packets import PACKETS_FROM, packets_apply, trace_packets
 from .ray_order import ray_order, worth_ordering
 from ..tree import Mesh, Tree
-from .target import QueryTarget
+from .target import QueryTarget, query_target
 from .wide import lane_defines
 
 KERNEL_FILE = "traverse.cl"
@@ -303,6 +303,7 @@ def stack_need(target: QueryTarget) -> int:
     the binary depth). Through the binary nodes: the tree's depth (one push
     per level).
     """
+    target = query_target(target)   # a BVH gives its query data
     wide = target.wide_records()
     if wide.packed:
         return wide.stack_need
@@ -319,6 +320,7 @@ def stack_size_for(target: QueryTarget, node_order: str = "ordered") -> int:
     """Stack entries the kernel gets for this tree: :func:`stack_need` rounded up
     to a bucket (the last bucket if none holds it: then rays may overflow, flagged);
     for ``node_order="global"`` :data:`GLOBAL_ORDER_STACK_FACTOR` times that."""
+    target = query_target(target)   # a BVH gives its query data
     factor = GLOBAL_ORDER_STACK_FACTOR if node_order == "global" else 1
     return stack_bucket(factor * stack_need(target))
 
@@ -441,7 +443,8 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
                   flags: cl.Buffer | None = None, counter_buf: cl.Buffer | None = None,
                   wait_for: list[cl.Event] | None = None, order: cl.Buffer | None = None,
                   defines: dict[str, int | str] | None = None,
-                  node_order: str = "ordered", packets: bool | None = None) -> DeviceHits:
+                  node_order: str = "ordered", packets: bool | None = None,
+                  scratch: cl.Buffer | None = None) -> DeviceHits:
     """Trace rays already on the device; nothing is read back.
 
     ``rays`` (see :func:`upload_rays`) must have passed :func:`check_rays`.
@@ -453,8 +456,11 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
     visited in (:data:`NODE_ORDERS`). ``defines`` adds or overrides
     -D defines of kernels/traverse.cl (tests, experiments). ``packets``: trace by
     packets of 8 rays (:mod:`lbvh.queries.packets`: the same answers bit for bit),
-    ``None`` where :func:`lbvh.queries.packets.packets_apply` says so.
+    ``None`` where :func:`lbvh.queries.packets.packets_apply` says so; ``scratch`` (4
+    bytes per ray) holds the rays the packets leave to the single-ray walk, allocated
+    for the call unless given.
     """
+    target = query_target(target)   # a BVH gives its query data
     ctx, tree = target.ctx, target.tree
     if stack_size is None:
         stack_size = stack_size_for(target, node_order)
@@ -480,7 +486,7 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
     if packets or (packets is None and can and count >= PACKETS_FROM):
         # packets where they are coherent; the rays of the others, listed in
         # `deferred`, go through the single-ray walk next (lbvh.queries.packets)
-        deferred = ctx.memory.alloc(4 * count)
+        deferred = scratch if scratch is not None else ctx.memory.alloc(4 * count)
         ev = trace_packets(target, rays, any_hit=any_hit, defines=all_defines, hits=hits,
                            flags=flags, order=order, deferred=deferred, wait_for=wait_for)
         order, wait_for, kernels = deferred, [ev], [ev]
@@ -492,7 +498,7 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
                  rays.interval_stride, order if order is not None else flags, hits, flags,
                  counter_buf if counters else flags, count, launch.per_item,
                  defines=all_defines, wait_for=wait_for)
-    if deferred is not None:
+    if deferred is not None and deferred is not scratch:
         ctx.memory.free(deferred)   # released once the walk that reads it is done
     return DeviceHits(count, hits, flags, counter_buf if counters else None, ev, kernels + [ev])
 
@@ -641,15 +647,19 @@ def _trace_in_place(target: QueryTarget, rays: Rays, any_hit: bool, triangle_tes
     try:
         for a in (rays.origins, rays.directions, lo, hi):
             bufs.append(memory.host_view(a))
-        out = memory.host_outputs(((4, n), np.float32), ((n,), np.int32))
-        planes, flag = out.arrays
+        # the answers, and the packets' scratch (the rays they leave to the single-ray
+        # walk): one block of host memory, no device memory
+        out = memory.host_outputs(((4, n), np.float32), ((n,), np.int32), ((n,), np.int32),
+                                  readable=True)
+        planes, flag, _ = out.arrays
         device_rays = DeviceRays(n, *bufs, stride)
         ups: list[cl.Event] = []
         if worth_ordering(n, target.tree.num_nodes):
             order, ups = ray_order(ctx, bufs[0], bufs[1], n, *target.tree.root_box())
         result = trace_buffers(target, device_rays, any_hit=any_hit, triangle_test=triangle_test,
                                stack_size=stack_size, hits=out.buffers[0], flags=out.buffers[1],
-                               wait_for=ups, order=order, node_order=node_order)
+                               wait_for=ups, order=order, node_order=node_order,
+                               scratch=out.buffers[2])
         dev.read_host_views(ctx.queue, [(out.block_buffer, out.block)], wait_for=[result.event])
         read = True
     finally:
@@ -822,6 +832,7 @@ def intersect(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.
               counters: bool = False, batch_size: int = DEFAULT_BATCH,
               stack_size: int | None = None, invalid_rays: InvalidRays = "raise",
               order: NodeOrder = "ordered") -> Hits | DeviceHitArrays:
+    target = query_target(target)   # a BVH gives its query data
     return _trace(target, origins, directions, tmin, tmax, False, triangle_test, counters,
                   batch_size, stack_size, invalid_rays, order)
 
@@ -833,6 +844,7 @@ def occluded(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0
              stack_size: int | None = None, return_hits: bool = False,
              invalid_rays: InvalidRays = "raise"
              ) -> np.ndarray | Hits | cl_array.Array | DeviceHitArrays:
+    target = query_target(target)   # a BVH gives its query data
     hits = _trace(target, origins, directions, tmin, tmax, True, triangle_test, counters,
                   batch_size, stack_size, invalid_rays)
     return hits if return_hits else hits.hit
@@ -863,6 +875,7 @@ def intersect_async(target: QueryTarget, origins: Any, directions: Any, tmin: An
                     counters: bool = False, batch_size: int = DEFAULT_BATCH,
                     stack_size: int | None = None, invalid_rays: InvalidRays = "raise",
                     order: NodeOrder = "ordered") -> "Future[Hits | DeviceHitArrays]":
+    target = query_target(target)   # a BVH gives its query data
     return _executor().submit(intersect, target, origins, directions, tmin, tmax,
                               triangle_test=triangle_test, counters=counters,
                               batch_size=batch_size, stack_size=stack_size,
@@ -874,6 +887,7 @@ def occluded_async(target: QueryTarget, origins: Any, directions: Any, tmin: Any
                    counters: bool = False, batch_size: int = DEFAULT_BATCH,
                    stack_size: int | None = None, return_hits: bool = False,
                    invalid_rays: InvalidRays = "raise") -> "Future[Any]":
+    target = query_target(target)   # a BVH gives its query data
     return _executor().submit(occluded, target, origins, directions, tmin, tmax,
                               triangle_test=triangle_test, counters=counters,
                               batch_size=batch_size, stack_size=stack_size,

@@ -72,7 +72,7 @@ import pyopencl as cl
 from .. import device as dev
 from .closest import check_points, check_points_range, closest_points, walk_of
 from .ray_order import MIN_POINTS, ordered_points
-from .target import QueryTarget
+from .target import QueryTarget, query_target
 from .winding_moments import (CUBIC_MONOMIALS, DEFAULT_ORDER, NODE_ERROR, ROWS_ORDER2,
                               scale_of_box)
 
@@ -249,6 +249,7 @@ def winding_numbers(target: QueryTarget, points: Any, *, beta: float = DEFAULT_B
         ValueError: a bad point (named), ``beta``, ``node_error`` or ``batch_size``.
         RuntimeError: the traversal stack overflowed (a tree deeper than 768 levels).
     """
+    target = query_target(target)   # a BVH gives its query data
     target = target.winding_target()
     if target.tree.clipped_leaves:
         raise ValueError("winding_numbers: this tree has spatial splits (builder='sbvh'), whose "
@@ -322,6 +323,7 @@ def inside(target: QueryTarget, points: np.ndarray, beta: float | None = None) -
     :data:`SIGN_NODE_ERROR`, then by the default walk only the points whose first ``w``
     lies within :data:`SIGN_FILTER_BOUND` of 1/2. A point past that has the sign of its
     exact ``w``, and so of the default's, wherever both walks are within their bounds."""
+    target = query_target(target)   # a BVH gives its query data
     if beta is not None:
         return winding_numbers(target, points, beta=beta) > 0.5
     w = winding_numbers(target, points, beta=SIGN_BETA, node_error=SIGN_NODE_ERROR)
@@ -335,6 +337,7 @@ def contains(target: QueryTarget, points: Any, *, beta: float | None = None) -> 
     """``bool (N,)``: whether each point is inside the mesh, ``winding > 0.5``
     (:func:`winding_numbers` at ``beta``; None, the default: :data:`DEFAULT_BETA`'s
     answers, by the filter of :func:`inside`)."""
+    target = query_target(target)   # a BVH gives its query data
     return inside(target, check_points(points), beta)
 
 
@@ -342,6 +345,7 @@ def signed_distance(target: QueryTarget, points: Any, *,
                     beta: float | None = None) -> np.ndarray:
     """``float32 (N,)``: the distance to the mesh (:func:`lbvh.queries.closest.closest_points`),
     negative inside (``winding > 0.5``, as :func:`contains` answers it)."""
+    target = query_target(target)   # a BVH gives its query data
     p = check_points(points)
     distance = closest_points(target, p).distance
     return np.where(inside(target, p, beta), -distance, distance)

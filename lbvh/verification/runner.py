@@ -11,6 +11,7 @@ from typing import Any, Iterable
 import numpy as np
 
 from ..api import build
+from ..layout import node_depths
 from ..queries.traverse import stack_need, stack_size_for
 from . import hard_cases
 from .hard_cases import Case
@@ -117,10 +118,10 @@ def run_case(case: Case, builder: str, judge: Judge | None = None, device: Any =
         out.validate_error = str(exc)
     out.nonfinite_boxes = _nonfinite_boxes(bvh)
     out.forced_stack = case.stack_size is not None
-    out.tree_stack = stack_size_for(bvh)
+    out.tree_stack = stack_size_for(bvh.query_data)
     out.stack = case.stack_size if out.forced_stack else out.tree_stack
-    out.stack_need = stack_need(bvh)
-    out.depth = int(bvh.depths().max()) if bvh.num_nodes > 1 else 0
+    out.stack_need = stack_need(bvh.query_data)
+    out.depth = int(node_depths(bvh.parent, bvh.root).max()) if bvh.num_nodes > 1 else 0
     if out.validate_error:  # tracing a broken tree proves nothing more
         return out
     judge = Judge(case, reference(case)) if judge is None else judge

@@ -137,14 +137,14 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
     # Wide records of both widths, and the binary walk where records would not fit.
     bvh = trees[0]
     for width in WIDTHS:
-        bvh.wide_records(width=width)
+        bvh.query_data.wide_records(width=width)
         bvh.intersect(o, d, counters=True)
         bvh.occluded(o, d)
         bvh.closest_points(o)
         bvh.winding_numbers(o)
     binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, bvh.vertices, bvh.faces,
                                   builder="x", device=ctx)
-    assert not binary.wide_records(max_bytes=0).packed
+    assert not binary.query_data.wide_records(max_bytes=0).packed
     binary.intersect(o, d)
     binary.closest_points(o)
     binary.winding_numbers(o)

@@ -77,7 +77,7 @@ def test_hard_cases_match_the_twin(name):
     assert np.array_equal(bvh.count_hits(o, d, lo, hi, signed=True),
                           signed_counts_brute(case.vertices, case.faces, o, d, lo, hi))
     if len(case.faces) <= 2:
-        assert bvh.wide_records().packed
+        assert bvh.query_data.wide_records().packed
         assert 0 < (got.total > 0).sum() < len(got.total)
 
 
@@ -457,22 +457,22 @@ def test_the_wide_walk_with_and_without_clang_builtins_and_with_a_full_stack(cla
         pytest.skip(f"clang's builtins need clang; {bvh.ctx.name} compiles with another")
     o, d = random_rays(v, 600, 2)
     want = all_hits_brute(v, f, o, d, dtype=np.float32)
-    wide = bvh.wide_records()
+    wide = bvh.query_data.wide_records()
     assert wide.packed and wide.count > 1
     head = ah.wide_head(bvh)
     rays = ah._rays(o, d, 0.0, np.inf, "raise")
     defines = {**ah.wide_defines(bvh.ctx, wide.width), "CLANG_MOVMSK": clang,
                "CLANG_CTZ": clang, "CLANG_PREFETCH": clang}
     total, flags, _ = ah.run_passes(bvh.ctx, ah.KERNEL_FILE, "all_hits", head,
-                                    ah.stack_need(bvh), rays, 1 << 18, None, defines=defines)
+                                    ah.stack_need(bvh.query_data), rays, 1 << 18, None, defines=defines)
     assert np.array_equal(total, want.total) and not flags.any()
     total, flags, kept = ah.run_passes(bvh.ctx, ah.KERNEL_FILE, "all_hits", head,
-                                       ah.stack_need(bvh), rays, 1 << 18, -1, defines=defines)
+                                       ah.stack_need(bvh.query_data), rays, 1 << 18, -1, defines=defines)
     assert np.array_equal(total, want.total) and not flags.any()
     for got, name in zip(kept, ("t", "prim", "u", "v")):
         assert np.array_equal(got.view(np.uint32), getattr(want, name).view(np.uint32)), name
     total, flags, _ = ah.run_passes(bvh.ctx, ah.KERNEL_FILE, "all_hits", head,
-                                    ah.stack_need(bvh), rays, 1 << 18, None,
+                                    ah.stack_need(bvh.query_data), rays, 1 << 18, None,
                                     defines={**defines, "STACK_SIZE": 1})
     full = (flags & FLAG_OVERFLOW) != 0
     assert 0 < full.sum() < len(full)
@@ -488,7 +488,7 @@ def test_refit_renews_the_triangles_in_slot_order():
     v, f = dense_soup(600, 7)
     bvh = lbvh.build(v, f)
     o, d = random_rays(v, 300, 8)
-    before = bvh.slot_triangles()
+    before = bvh.query_data.slot_triangles()
     same(bvh.all_hits(o, d), all_hits_brute(v, f, o, d, dtype=np.float32))
     moved = (v * np.float32(1.5) + np.float32(0.25)).astype(np.float32)
     bvh.refit(moved)
@@ -496,7 +496,7 @@ def test_refit_renews_the_triangles_in_slot_order():
     want = all_hits_brute(moved, f, o2, d2, dtype=np.float32)
     assert np.array_equal(bvh.count_hits(o2, d2), want.total)
     same(bvh.all_hits(o2, d2), want)
-    assert bvh.slot_triangles() is not before
+    assert bvh.query_data.slot_triangles() is not before
 
 
 # -- both passes as streams (kernels/hit_streams.h, all_hits.stream_plan) -----------------

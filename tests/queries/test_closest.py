@@ -21,7 +21,7 @@ def around(v: np.ndarray, n: int, seed: int, spread: float = 0.5) -> np.ndarray:
 
 def check_against_twin(bvh: lbvh.BVH, p: np.ndarray, **kwargs) -> lbvh.queries.closest.Closest:
     v, f = bvh.vertices, bvh.faces
-    got = closest_points(bvh, p, **kwargs)
+    got = closest_points(bvh.query_data, p, **kwargs)
     with np.errstate(all="ignore"):
         d, q, t = closest_points_numpy(v, f, p)
     bound = closest_distance_bound(v, p)
@@ -55,10 +55,10 @@ def test_the_wide_walk_prunes_as_the_binary_walk(width):
     v, f = shipped_mesh("teapot.obj")
     p = around(v, 400, 7)
     bvh = lbvh.build(v, f, collapse=True)
-    assert bvh.wide_records(width=width).packed and bvh.wide_records().width == width
+    assert bvh.query_data.wide_records(width=width).packed and bvh.query_data.wide_records().width == width
     wide = check_against_twin(bvh, p)
     binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
-    assert not binary.wide_records(max_bytes=0).packed
+    assert not binary.query_data.wide_records(max_bytes=0).packed
     nodes = check_against_twin(binary, p)
     assert np.array_equal(wide.distance.view(np.uint32), nodes.distance.view(np.uint32))
     differ = wide.prim != nodes.prim

@@ -109,7 +109,7 @@ def test_the_degenerate_test_is_exact_and_symmetric():
     assert np.array_equal(exact.collinear(v, f), want)
     bvh = lbvh.build(v, f)
     got = np.empty((bvh.num_slots, 3, 3), np.float32)
-    cl.enqueue_copy(bvh.ctx.queue, got, bvh.slot_triangles(), is_blocking=True)
+    cl.enqueue_copy(bvh.ctx.queue, got, bvh.query_data.slot_triangles(), is_blocking=True)
     assert np.array_equal(got.view(np.uint32),
                           order_triangles_numpy(v, f, bvh.prim_order).view(np.uint32))
     is_point = (got == got[:, :1]).all(axis=(1, 2))
@@ -334,14 +334,14 @@ def test_winding_numbers_do_not_depend_on_how_the_mesh_is_written(mesh, build):
     p = invariance.winding_points(v, f, 1200, 6)
     order = np.random.default_rng(1).permutation(len(f))
     base = lbvh.build(v, f, **build)
-    walks = {packets: winding.winding_numbers(base, p, packets=packets)
+    walks = {packets: winding.winding_numbers(base.query_data, p, packets=packets)
              for packets in (False, True)}
     inside = base.contains(p)
     for rewrite in invariance.rewrites(v, p):
         other = lbvh.build(rewrite.points(v), rewrite.faces(f, order), **build)
         q = rewrite.points(p)
         for packets, w in walks.items():
-            got = winding.winding_numbers(other, q, packets=packets)
+            got = winding.winding_numbers(other.query_data, q, packets=packets)
             if rewrite.permute:
                 assert np.abs(got - w).max() <= 2 * WINDING_BOUND, rewrite.name
                 continue

@@ -33,7 +33,7 @@ def trace(bvh, o, d, tmin=0.0, tmax=np.inf, *, any_hit=False, packets, ordered=T
         order, wait = ray_order(ctx, rays.origins, rays.directions, rays.count,
                                 *bvh.tree.root_box())
     try:
-        out = tr.trace_buffers(bvh, rays, any_hit=any_hit, packets=packets, order=order,
+        out = tr.trace_buffers(bvh.query_data, rays, any_hit=any_hit, packets=packets, order=order,
                                wait_for=wait, stack_size=stack_size)
         planes = tr.read_hits(ctx, out)
         flags = np.empty(rays.count, np.int32)
@@ -87,8 +87,8 @@ def deferred_share(bvh, o, d):
     n = rays.count
     hits, flags, deferred = (ctx.memory.alloc(16 * n), ctx.memory.alloc(4 * n),
                              ctx.memory.alloc(4 * n))
-    defines = tr.kernel_defines(ctx, False, "watertight", False, tr.stack_size_for(bvh))
-    ev = trace_packets(bvh, rays, any_hit=False, defines=defines, hits=hits, flags=flags,
+    defines = tr.kernel_defines(ctx, False, "watertight", False, tr.stack_size_for(bvh.query_data))
+    ev = trace_packets(bvh.query_data, rays, any_hit=False, defines=defines, hits=hits, flags=flags,
                        order=None, deferred=deferred)
     out = np.empty(n, np.int32)
     cl.enqueue_copy(ctx.queue, out, deferred, wait_for=[ev], is_blocking=True)
@@ -202,7 +202,7 @@ def test_per_ray_intervals_and_nan_rays():
     cl.enqueue_copy(bvh.ctx.queue, rays.directions, bad, is_blocking=True)
     flags = []
     for packets in (False, True):
-        out = tr.trace_buffers(bvh, rays, packets=packets)
+        out = tr.trace_buffers(bvh.query_data, rays, packets=packets)
         planes = tr.read_hits(bvh.ctx, out)
         flag = np.empty(20, np.int32)
         cl.enqueue_copy(bvh.ctx.queue, flag, out.flags, wait_for=[out.event], is_blocking=True)
@@ -230,9 +230,9 @@ def test_packets_refuse_what_they_cannot_do():
     o, d = ray_set("teapot")
     rays = upload_rays(bvh.ctx, check_rays(o[:8], d[:8]))
     with pytest.raises(ValueError, match="packets=True"):
-        tr.trace_buffers(bvh, rays, packets=True, counters=True)
+        tr.trace_buffers(bvh.query_data, rays, packets=True, counters=True)
     with pytest.raises(ValueError, match="packets=True"):
-        tr.trace_buffers(bvh, rays, packets=True, node_order="global")
+        tr.trace_buffers(bvh.query_data, rays, packets=True, node_order="global")
     rays.release()
     assert PACKET == 8
 

@@ -18,7 +18,7 @@ import pytest
 import lbvh
 from conftest import random_soup, shared_mesh, shipped_mesh
 from lbvh.queries import traverse as tr
-from lbvh.layout import make_nodes
+from lbvh.layout import make_nodes, node_depths
 from lbvh.verification.error_bound import t_bound  # the bound of the module docstring
 from lbvh.verification.oracle import brute_force, hits_on
 from lbvh.queries.wide import WIDTHS, read_records
@@ -314,7 +314,7 @@ def test_global_order_heap_holds_the_frontier():
     lo, hi = v.min(0), v.max(0)
     o = (lo + (hi - lo) * rng.uniform(0.2, 0.8, (50_000, 3))).astype(np.float32)
     d = rng.normal(size=(50_000, 3)).astype(np.float32)
-    small = bvh.intersect(o, d, order="global", stack_size=tr.stack_size_for(bvh))
+    small = bvh.intersect(o, d, order="global", stack_size=tr.stack_size_for(bvh.query_data))
     assert small.overflow_count > 0            # the case this guards
     got = bvh.intersect(o, d, order="global")
     assert got.overflow_count == 0
@@ -499,7 +499,7 @@ def test_stack_overflow_is_reported_never_silent():
     depth = 40
     bvh, v, f = chain_tree(depth)
     bvh.validate()
-    assert int(bvh.depths().max()) == depth
+    assert int(node_depths(bvh.parent, bvh.root).max()) == depth
     # -x rays enter the chain's subtree before each level's leaf: every level pushes its
     # leaf, and the closest hit (triangle depth-1) is pushed last, by the deepest level
     o = np.float32([[depth + 1, 0, 0.5]] * 3 + [[-1, 0, 0.5]] * 3)
@@ -507,7 +507,7 @@ def test_stack_overflow_is_reported_never_silent():
     tmin = np.float32([0, 1.5, 20.5, 0, 1.5, 20.5])
     ref = brute_force(v, f, o, d, tmin)
     auto = bvh.intersect(o, d, tmin)
-    assert tr.stack_size_for(bvh) >= depth
+    assert tr.stack_size_for(bvh.query_data) >= depth
     assert auto.overflow_count == 0
     assert_matches_oracle(v, f, o, d, auto, ref, tmin)
     small = bvh.intersect(o, d, tmin, stack_size=8)
@@ -524,14 +524,14 @@ def test_stack_overflow_is_reported_never_silent():
     assert (occ.hit | occ.overflow).all()
     # the binary walk (nearest first) of the -x rays overflows, and says so
     binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="chain")
-    assert not binary.wide_records(max_bytes=0).packed
+    assert not binary.query_data.wide_records(max_bytes=0).packed
     occ = binary.occluded(o, d, tmin, stack_size=8, return_hits=True)
     assert occ.overflow.tolist()[:3] == [True] * 3 and (occ.hit | occ.overflow).all()
 
 
 def test_deep_trees_get_a_deeper_stack():
     bvh, v, f = chain_tree(150)
-    assert tr.stack_size_for(bvh) >= 150
+    assert tr.stack_size_for(bvh.query_data) >= 150
     o = np.float32([[151, 0, 0.5]])
     d = np.float32([[-1, 0, 0]])
     got = bvh.intersect(o, d, 2.5)
@@ -554,7 +554,7 @@ def test_kernel_terminates_on_a_cyclic_tree_and_flags_nan_rays():
     with pytest.raises(ValueError, match=r"node 0 is reached twice"):
         bvh.intersect(np.float32([[0.2, 0.2, 1]]), np.float32([[0, 0, -1]]))
     # through its binary nodes (the fallback of trees too large for records) it is traced
-    assert not bvh.wide_records(max_bytes=0).packed
+    assert not bvh.query_data.wide_records(max_bytes=0).packed
     got = bvh.intersect(np.float32([[0.2, 0.2, 1]]), np.float32([[0, 0, -1]]), stack_size=32,
                         counters=True)
     assert got.overflow[0] and got.nodes_visited[0] <= bvh.num_nodes + 1
@@ -681,7 +681,7 @@ def test_conference_zero_area_triangles_are_never_hit():
 def test_faces_in_slot_order_equal_their_numpy_twin(kind):
     bvh = tree("teapot", kind)
     got = np.empty((bvh.num_prims, 3), np.uint32)
-    cl.enqueue_copy(bvh.ctx.queue, got, bvh.slot_faces(), is_blocking=True)
+    cl.enqueue_copy(bvh.ctx.queue, got, bvh.query_data.slot_faces(), is_blocking=True)
     assert np.array_equal(got, bvh.faces[bvh.prim_order])
 
 
@@ -690,7 +690,7 @@ def test_triangles_in_slot_order_equal_their_numpy_twin(kind):
     from lbvh.queries.traverse import order_triangles_numpy
     bvh = tree("teapot", kind)
     got = np.empty((bvh.num_slots, 3, 3), np.float32)
-    cl.enqueue_copy(bvh.ctx.queue, got, bvh.slot_triangles(), is_blocking=True)
+    cl.enqueue_copy(bvh.ctx.queue, got, bvh.query_data.slot_triangles(), is_blocking=True)
     want = order_triangles_numpy(bvh.vertices, bvh.faces, bvh.prim_order)
     assert want.shape == (bvh.num_slots, 3, 3)
     assert np.array_equal(got.view(np.uint32), want.view(np.uint32))
@@ -709,7 +709,7 @@ def test_slot_triangles_make_the_degenerate_ones_points(name):
     c = hard_cases.CASES[name]()
     bvh = lbvh.build(c.vertices, c.faces)
     got = np.empty((bvh.num_slots, 3, 3), np.float32)
-    cl.enqueue_copy(bvh.ctx.queue, got, bvh.slot_triangles(), is_blocking=True)
+    cl.enqueue_copy(bvh.ctx.queue, got, bvh.query_data.slot_triangles(), is_blocking=True)
     want = order_triangles_numpy(bvh.vertices, bvh.faces, bvh.prim_order)
     assert np.array_equal(got.view(np.uint32), want.view(np.uint32))
     slot_faces = bvh.faces[bvh.prim_order]
@@ -760,12 +760,12 @@ def test_traversal_through_the_nodes_equals_the_wide_records():
     for kind in ("lbvh30", "sah", "host_median"):
         packed = tree("teapot", kind)
         plain = lbvh.BVH.from_arrays(packed.nodes, packed.prim_order, packed.root, v, f, builder=kind)
-        assert not plain.wide_records(max_bytes=0).packed
+        assert not plain.query_data.wide_records(max_bytes=0).packed
         binary = plain.intersect(o, d, counters=True)
         for width in WIDTHS:
             four = lbvh.BVH.from_arrays(packed.nodes, packed.prim_order, packed.root, v, f,
                                         builder=kind)
-            assert four.wide_records(width=width).packed
+            assert four.query_data.wide_records(width=width).packed
             got = four.intersect(o, d, counters=True)
             _same_hits(got, binary, v, f, o, d, (kind, width))
             assert (four.occluded(o, d) == plain.occluded(o, d)).all()
@@ -780,13 +780,13 @@ def test_refit_rewrites_the_wide_records_boxes():
     o, d = ray_set("suzanne")
     bvh = lbvh.build(v, f)
     before = bvh.intersect(o, d)
-    first = bvh.wide_records()
+    first = bvh.query_data.wide_records()
     lanes_before = dev_lanes(bvh, first)
     rng = np.random.default_rng(3)
     moved = (v + np.float32([0.0, 0.0, 0.5])
              + rng.normal(0, 0.02, v.shape).astype(np.float32)).astype(np.float32)
     bvh.refit(moved)
-    assert bvh.wide_records() is first
+    assert bvh.query_data.wide_records() is first
     assert np.array_equal(dev_lanes(bvh, first), lanes_before)
     records, _ = read_records(bvh.ctx, first)
     lanes = lanes_before

@@ -140,7 +140,7 @@ def test_watertight_without_the_double_fallback():
     edges = np.unique(np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
     d = np.concatenate([v, 0.5 * (v[edges[:, 0]] + v[edges[:, 1]])]).astype(np.float32)
     rays = tr.check_rays(np.zeros_like(d), d)
-    out = tr.trace_buffers(bvh, tr.upload_rays(bvh.ctx, rays), defines={"NO_FP64": 1})
+    out = tr.trace_buffers(bvh.query_data, tr.upload_rays(bvh.ctx, rays), defines={"NO_FP64": 1})
     t, _, _, prim = tr.read_hits(bvh.ctx, out)
     assert (prim.view(np.int32) >= 0).all()
     with_fallback = bvh.intersect(np.zeros_like(d), d)
@@ -172,7 +172,7 @@ def test_rays_with_shears_below_float32s_range_never_leak(fp64):
                 t = hit.t * -down
             else:
                 rays = tr.check_rays(o, d)
-                out = tr.trace_buffers(bvh, tr.upload_rays(bvh.ctx, rays), defines={"NO_FP64": 1})
+                out = tr.trace_buffers(bvh.query_data, tr.upload_rays(bvh.ctx, rays), defines={"NO_FP64": 1})
                 t, _, _, prim = tr.read_hits(bvh.ctx, out)
                 assert (prim.view(np.int32) >= 0).all(), (tiny, down)
                 t = t * -down

@@ -29,7 +29,7 @@ def _fresh(kind, scene_name="teapot"):
 
 
 def assert_equal_to_twin(bvh, width):
-    wide = bvh.wide_records(width=width)
+    wide = bvh.query_data.wide_records(width=width)
     twin = wide_numpy(bvh.nodes, bvh.root, width)
     assert wide.packed and wide.width == width
     assert wide.count == len(twin.record_node)
@@ -121,7 +121,7 @@ def test_a_scene_at_any_power_of_two_scale_opens_the_same_lanes(k):
     base = lbvh.build(v, f, builder="sah")
     other = lbvh.build(np.ldexp(v, k).astype(np.float32), f, builder="sah")
     assert np.array_equal(base.prim_order, other.prim_order)
-    a, b = base.wide_records(width=8), other.wide_records(width=8)
+    a, b = base.query_data.wide_records(width=8), other.query_data.wide_records(width=8)
     assert np.array_equal(read_lanes(base.ctx, a), read_lanes(other.ctx, b))
     assert np.array_equal(wide_numpy(base.nodes, base.root, 8).lanes,
                           wide_numpy(other.nodes, other.root, 8).lanes)
@@ -143,12 +143,12 @@ def test_stack_need_is_the_deepest_sum_of_pushes():
 
 def test_a_cycle_is_refused_with_the_node_named():
     with pytest.raises(ValueError, match=r"node 0 is reached twice"):
-        cyclic_tree().wide_records()
+        cyclic_tree().query_data.wide_records()
 
 
 def test_bad_width_is_refused():
     with pytest.raises(ValueError, match=r"width: 3; expected one of \(4, 8\)"):
-        _fresh("lbvh30").wide_records(width=3)
+        _fresh("lbvh30").query_data.wide_records(width=3)
 
 
 @pytest.mark.parametrize("define", ["CLANG_MOVMSK", "CLANG_CTZ"])
@@ -166,7 +166,7 @@ def test_lane_helpers_by_clang_builtins_answer_as_the_portable_code(any_hit, def
     rays = tr.check_rays(o, d)
     got = {}
     for value in (0, 1):
-        out = tr.trace_buffers(bvh, tr.upload_rays(bvh.ctx, rays), any_hit=any_hit,
+        out = tr.trace_buffers(bvh.query_data, tr.upload_rays(bvh.ctx, rays), any_hit=any_hit,
                                defines={define: value})
         got[value] = [np.asarray(a).view(np.uint32) for a in tr.read_hits(bvh.ctx, out)]
     for a, b in zip(got[0], got[1]):

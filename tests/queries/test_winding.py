@@ -20,6 +20,8 @@ from lbvh.queries.winding_moments import (CORNER_ROWS, ROWS_ORDER1, ROWS_ORDER2,
 from lbvh.queries import winding
 from lbvh.verification import hard_cases, meshes
 from lbvh.verification.error_bound import INSIDE_TOLERANCE, WINDING_BOUND
+from lbvh.layout import NODE_DTYPE
+from lbvh.verification.validate import validate_tree
 
 
 def box_points(v: np.ndarray, n: int, seed: int, margin: float = 0.2) -> np.ndarray:
@@ -119,7 +121,7 @@ def test_the_far_expansion_is_its_twins_and_of_the_second_order():
     v, f = meshes.soup(400, 3, 0.05, spread="normal")
     built = lbvh.build(v, f)
     bvh = lbvh.BVH.from_arrays(built.nodes, built.prim_order, built.root, v, f, builder="x")
-    assert not bvh.wide_records(max_bytes=0).packed
+    assert not bvh.query_data.wide_records(max_bytes=0).packed
     m = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f)
     unit = wm.winding_scale(v)                  # the moments are of the mesh at unit size
     root = m[bvh.root]
@@ -158,15 +160,15 @@ def test_winding_numbers_within_the_bound_of_the_exact_sum(name, packets):
     bvh = lbvh.build(v, f)
     p = box_points(v, 1500, 1)
     exact = winding_numbers_numpy(v, f, p)
-    w = winding.winding_numbers(bvh, p, packets=packets)
+    w = winding.winding_numbers(bvh.query_data, p, packets=packets)
     assert w.dtype == np.float32 and w.shape == (len(p),)
     assert np.abs(w - exact).max() <= WINDING_BOUND
     # a larger beta expands fewer nodes: closer to the exact sum
-    assert np.abs(winding.winding_numbers(bvh, p, beta=8, packets=packets)
+    assert np.abs(winding.winding_numbers(bvh.query_data, p, beta=8, packets=packets)
                   - exact).max() <= WINDING_BOUND / 10
     # the same answer from another tree, within the bound
     other = lbvh.build(v, f, builder="sah")
-    assert np.abs(winding.winding_numbers(other, p, packets=packets)
+    assert np.abs(winding.winding_numbers(other.query_data, p, packets=packets)
                   - exact).max() <= WINDING_BOUND
 
 
@@ -226,10 +228,10 @@ def test_the_wide_walk_answers_as_the_binary_walk(width):
     exact = winding_numbers_numpy(v, f, p)
     bvh = lbvh.build(v, f, collapse=True)
     bvh.winding_numbers(p[:10])   # moments of the default width first
-    assert bvh.wide_records(width=width).packed and bvh.wide_records().width == width
+    assert bvh.query_data.wide_records(width=width).packed and bvh.query_data.wide_records().width == width
     wide = bvh.winding_numbers(p)
     binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
-    assert not binary.wide_records(max_bytes=0).packed
+    assert not binary.query_data.wide_records(max_bytes=0).packed
     nodes = binary.winding_numbers(p)
     assert np.abs(wide - exact).max() <= WINDING_BOUND
     assert np.abs(nodes - exact).max() <= WINDING_BOUND
@@ -241,7 +243,7 @@ def test_the_wide_walk_answers_as_the_binary_walk(width):
 def test_wide_moments_are_the_lanes_moments():
     v, f = meshes.soup(800, 3, 0.05, spread="normal")
     bvh = lbvh.build(v, f)
-    wide = bvh.wide_records(width=8)
+    wide = bvh.query_data.wide_records(width=8)
     lanes = read_lanes(bvh.ctx, wide)
     m = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f)
     corners = lane_corners(lanes, bvh.nodes, bvh.prim_order, v, f)
@@ -270,7 +272,7 @@ def test_lane_corners_are_each_leafs_first_triangle(collapse):
     collapsed one."""
     v, f = meshes.soup(600, 3, 0.05, spread="normal")
     bvh = lbvh.build(v, f, collapse=collapse)
-    wide = bvh.wide_records(width=8)
+    wide = bvh.query_data.wide_records(width=8)
     lanes = read_lanes(bvh.ctx, wide)
     corners = lane_corners(lanes, bvh.nodes, bvh.prim_order, v, f)
     assert corners.shape == (wide.count, CORNER_ROWS, 8) and corners.dtype == np.float32
@@ -324,7 +326,7 @@ def test_device_moments_are_the_twins_bit_for_bit(case):
         twin = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f, order)
         assert np.array_equal(_device_moments(bvh, None, order), twin)
         for width in (4, 8):
-            wide = bvh.wide_records(width=width)
+            wide = bvh.query_data.wide_records(width=width)
             if not wide.count:
                 assert bvh.num_nodes == 1   # a root leaf: no records, one row per node
                 assert np.array_equal(_device_moments(bvh, wide, order), twin)
@@ -357,13 +359,13 @@ def test_meshes_of_any_size(size):
     exact = winding_numbers_numpy(v, f, p)
     bvh = lbvh.build(v, f)
     binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
-    assert not binary.wide_records(max_bytes=0).packed
+    assert not binary.query_data.wide_records(max_bytes=0).packed
     for tree in (bvh, binary):
         w = tree.winding_numbers(p)
         assert np.isfinite(w).all() and np.abs(w - exact).max() <= WINDING_BOUND
         assert np.array_equal(tree.contains(p), exact > 0.5)
     # the wide records a point a work-item as well (the walk a GPU takes)
-    w = winding.winding_numbers(bvh, p, packets=False)
+    w = winding.winding_numbers(bvh.query_data, p, packets=False)
     assert np.isfinite(w).all() and np.abs(w - exact).max() <= WINDING_BOUND
 
 
@@ -419,7 +421,7 @@ def test_a_node_of_much_area_for_its_radius_is_opened():
     assert exact.max() > 0.1          # the open end: a large part of the point's sky
     built = lbvh.build(v, f)
     binary = lbvh.BVH.from_arrays(built.nodes, built.prim_order, built.root, v, f, builder="x")
-    assert not binary.wide_records(max_bytes=0).packed
+    assert not binary.query_data.wide_records(max_bytes=0).packed
     assert np.abs(binary.winding_numbers(p) - exact).max() <= WINDING_BOUND * 0.6
     # without the floor (a node far on beta alone), the tube's root expansion alone
     root = node_moments(binary.nodes, binary.prim_order, binary.root, v, f)[binary.root]
@@ -448,13 +450,13 @@ def test_points_far_from_the_mesh():
     for far in (1e3, 1e8, 1e13, 1e18, 1e30):
         p = np.float32([[far, 0, 0], [0, -far, far], [0.1, 0.2, 0.3]])
         for packets in (False, True):
-            w = winding.winding_numbers(bvh, p, packets=packets)
+            w = winding.winding_numbers(bvh.query_data, p, packets=packets)
             assert np.abs(w[:2]).max() < 1e-6 and abs(w[2] - 1) <= WINDING_BOUND
         # a whole packet of points, near and far, in one (their sphere spans 1e30)
         pk = np.float32(np.resize(p, (winding.PACKET, 3)) * np.arange(1, winding.PACKET + 1)[:, None])
-        alone = np.concatenate([winding.winding_numbers(bvh, pk[i:i + 1], packets=True)
+        alone = np.concatenate([winding.winding_numbers(bvh.query_data, pk[i:i + 1], packets=True)
                                 for i in range(len(pk))])
-        together = winding.winding_numbers(bvh, pk, packets=True)
+        together = winding.winding_numbers(bvh.query_data, pk, packets=True)
         assert np.array_equal(alone.view(np.uint32), together.view(np.uint32))
     box = bvh.mesh.bounds
     assert np.array_equal(box[0], v.min(0)) and np.array_equal(box[1], v.max(0))
@@ -477,7 +479,7 @@ def test_moments_without_device_doubles_are_the_twins(monkeypatch):
     assert not wm.device_can_make(ctx, too_many, 2)
     assert wm.device_can_make(ctx, too_many, 1) == \
         (8 * wm.TERMS[1] * too_many <= ctx.memory.max_alloc)
-    wide = bvh.wide_records()
+    wide = bvh.query_data.wide_records()
     device = _device_moments(bvh, wide, 2)
     monkeypatch.setattr(wm, "device_can_make", lambda *args: False)
     assert np.array_equal(_device_moments(bvh, wide, 2), device)
@@ -689,12 +691,24 @@ def test_sponza_point_where_small_nodes_add_up():
     exact = winding_numbers_numpy(v, f, q)
     bvh = lbvh.build(v, f)
     as_is = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
-    assert as_is.winding_target() is as_is and as_is.wide_records().packed
+    assert as_is.query_data.winding_target() is as_is.query_data
+    assert as_is.query_data.wide_records().packed
     binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
-    assert not binary.wide_records(max_bytes=0).packed
+    assert not binary.query_data.wide_records(max_bytes=0).packed
     for tree in (bvh, as_is, binary):
         assert abs(tree.winding_numbers(q)[0] - exact[0]) <= WINDING_BOUND
     assert abs(as_is.winding_numbers(q, beta=1.3)[0] - exact[0]) > WINDING_BOUND
+
+
+def _valid_tree(data, v, f):
+    """The tree of a query data (read back from the device) passes the validator over
+    ``(v, f)``; its nodes and prim_order."""
+    tree, ctx = data.tree, data.ctx
+    nodes = dev.from_device(ctx, tree.nodes, NODE_DTYPE, (tree.num_nodes,))
+    parent = dev.from_device(ctx, tree.parent, np.int32, (tree.num_nodes,))
+    order = dev.from_device(ctx, tree.prim_order, np.int32, (tree.num_prims,))
+    validate_tree(nodes, parent, order, tree.root, v, f, False)
+    return nodes, order
 
 
 def test_the_default_tree_is_walked_through_a_restructured_copy():
@@ -710,38 +724,38 @@ def test_the_default_tree_is_walked_through_a_restructured_copy():
     bvh = lbvh.build(v, f)
     nodes = bvh.nodes.copy()
     w = bvh.winding_numbers(p)
-    copy = bvh.winding_target()
-    assert copy is not bvh and copy is bvh.winding_target()
-    assert copy.builder == f"lbvh+treelets{winding.WINDING_TREELET_ROUNDS}-" \
-                           f"{winding.WINDING_TREELET_LEAVES}"
+    copy = bvh.query_data.winding_target()
+    assert copy is not bvh.query_data and copy is bvh.query_data.winding_target()
+    assert copy.tree.builder == f"lbvh+treelets{winding.WINDING_TREELET_ROUNDS}-" \
+                                f"{winding.WINDING_TREELET_LEAVES}"
     assert copy.winding_target() is copy
     fresh = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
     assert np.array_equal(fresh.nodes, nodes)    # read back from the device: unchanged
-    copy.validate()
-    assert sorted(copy.prim_order) == list(range(len(f)))
-    assert not np.array_equal(copy.nodes, nodes)   # another topology
+    copy_nodes, copy_order = _valid_tree(copy, v, f)
+    assert sorted(copy_order) == list(range(len(f)))
+    assert not np.array_equal(copy_nodes, nodes)   # another topology
     assert np.abs(w - winding_numbers_numpy(v, f, p)).max() <= WINDING_BOUND
-    assert np.array_equal(bvh.contains(p), copy.winding_numbers(p) > 0.5)
+    assert np.array_equal(bvh.contains(p), winding.winding_numbers(copy, p) > 0.5)
     # a refit moves both trees' boxes; the same copy answers for the moved mesh
     moved = (v * np.float32(1.5) + np.float32(0.25)).astype(np.float32)
     bvh.refit(moved)
-    assert bvh.winding_target() is copy
+    assert bvh.query_data.winding_target() is copy
     q = (p * np.float32(1.5) + np.float32(0.25)).astype(np.float32)
     exact = winding_numbers_numpy(moved, f, q)
     assert np.abs(bvh.winding_numbers(q) - exact).max() <= WINDING_BOUND
-    copy.validate()
+    _valid_tree(copy, moved, f)
     # the BVH's record width is the walk's
-    bvh.wide_records(width=4)
-    assert bvh.winding_target().wide_records().width == 4
+    bvh.query_data.wide_records(width=4)
+    assert bvh.query_data.winding_target().wide_records().width == 4
     assert np.abs(bvh.winding_numbers(q) - exact).max() <= WINDING_BOUND
     # a collapsed LBVH gets a copy too; trees restructured or built otherwise do not
     collapsed = lbvh.build(v, f, collapse=True)
-    assert collapsed.winding_target().builder.startswith("lbvh+collapse+treelets")
+    assert collapsed.query_data.winding_target().tree.builder.startswith("lbvh+collapse+treelets")
     assert np.abs(collapsed.winding_numbers(p) - winding_numbers_numpy(v, f, p)).max() \
         <= WINDING_BOUND
     for kw in ({"treelet_rounds": 1}, {"builder": "sah"}):
         other = lbvh.build(v, f, **kw)
-        assert other.winding_target() is other
+        assert other.query_data.winding_target() is other.query_data
 
 
 def test_sponza_sign_filter_answers_as_the_default_beta():
@@ -853,7 +867,7 @@ def test_bad_points_and_options():
             bvh.contains(p[:3], beta=beta)
     for packets in (1, "yes", 0.0):
         with pytest.raises(ValueError, match="packets"):
-            winding.winding_numbers(bvh, p[:3], packets=packets)
+            winding.winding_numbers(bvh.query_data, p[:3], packets=packets)
     assert bvh.winding_numbers(np.zeros((0, 3))).shape == (0,)
 
 
@@ -866,10 +880,10 @@ def test_points_in_morton_order_give_the_same_winding_numbers(monkeypatch):
     p = box_points(v, 3000, 9)
     bvh = lbvh.build(v, f)
     binary = lbvh.BVH.from_arrays(bvh.nodes, bvh.prim_order, bvh.root, v, f, builder="x")
-    assert not binary.wide_records(max_bytes=0).packed
-    plain = [winding.winding_numbers(bvh, p, packets=False), binary.winding_numbers(p)]
+    assert not binary.query_data.wide_records(max_bytes=0).packed
+    plain = [winding.winding_numbers(bvh.query_data, p, packets=False), binary.winding_numbers(p)]
     monkeypatch.setattr(winding_module, "MIN_POINTS", 1000)
-    ordered = [winding.winding_numbers(bvh, p, packets=False), binary.winding_numbers(p)]
+    ordered = [winding.winding_numbers(bvh.query_data, p, packets=False), binary.winding_numbers(p)]
     for a, b in zip(plain, ordered):
         assert np.array_equal(a.view(np.uint32), b.view(np.uint32))
     # and in batches, some above the threshold and some below
@@ -886,27 +900,27 @@ def test_a_points_winding_number_is_the_same_in_any_packet():
     v, f = shipped_mesh("teapot.obj")
     p = box_points(v, 3001, 4)                   # 187 packets and 9 points
     bvh = lbvh.build(v, f)
-    assert winding.use_packets(bvh.ctx, winding.walk_of(bvh)[1]) == bvh.ctx.is_cpu
-    whole = winding.winding_numbers(bvh, p, packets=True)
+    assert winding.use_packets(bvh.ctx, winding.walk_of(bvh.query_data)[1]) == bvh.ctx.is_cpu
+    whole = winding.winding_numbers(bvh.query_data, p, packets=True)
     bits = whole.view(np.uint32)
     shuffled = np.random.default_rng(5).permutation(len(p))
-    assert np.array_equal(winding.winding_numbers(bvh, p[shuffled], packets=True)
+    assert np.array_equal(winding.winding_numbers(bvh.query_data, p[shuffled], packets=True)
                           .view(np.uint32), bits[shuffled])
-    batched = winding.winding_numbers(bvh, p, batch_size=700, packets=True)
+    batched = winding.winding_numbers(bvh.query_data, p, batch_size=700, packets=True)
     assert np.array_equal(batched.view(np.uint32), bits)
     for k in (1, 5, 16, 17, 40):                 # a packet and less, and more
         some = np.flatnonzero(np.random.default_rng(k).random(len(p)) < k / len(p))[:k]
         some = some if len(some) else np.arange(k)
-        assert np.array_equal(winding.winding_numbers(bvh, p[some], packets=True)
+        assert np.array_equal(winding.winding_numbers(bvh.query_data, p[some], packets=True)
                               .view(np.uint32), bits[some])
     exact = winding_numbers_numpy(v, f, p)
-    per_point = winding.winding_numbers(bvh, p, packets=False)
+    per_point = winding.winding_numbers(bvh.query_data, p, packets=False)
     assert np.abs(whole - exact).max() <= WINDING_BOUND
     assert np.abs(whole - per_point).max() <= 1e-5   # the same nodes, another order
     # the filter's first walk too (contains and the sign of signed distance)
-    first = winding.winding_numbers(bvh, p, beta=winding.SIGN_BETA,
+    first = winding.winding_numbers(bvh.query_data, p, beta=winding.SIGN_BETA,
                                     node_error=winding.SIGN_NODE_ERROR, packets=True)
-    assert np.array_equal(winding.winding_numbers(bvh, p[shuffled], beta=winding.SIGN_BETA,
+    assert np.array_equal(winding.winding_numbers(bvh.query_data, p[shuffled], beta=winding.SIGN_BETA,
                                                   node_error=winding.SIGN_NODE_ERROR,
                                                   packets=True).view(np.uint32),
                           first.view(np.uint32)[shuffled])

@@ -83,13 +83,13 @@ want = lbvh.build(v, f, device="pthread").intersect(o, d)
 device_width = lbvh.queries.wide.width_for
 for width in WIDTHS:
     lbvh.queries.wide.width_for = lambda ctx, width=width: width
-    a.wide_records(width=width)
+    a.query_data.wide_records(width=width)
     got = a.intersect(o, d)
     assert a._wide.width == width and a._wide.packed, width
     assert np.array_equal(got.prim, want.prim) and np.array_equal(got.t, want.t), width
 lbvh.queries.wide.width_for = device_width
 b = lbvh.BVH.from_arrays(a.nodes, a.prim_order, a.root, v, f, builder="x", device="oclgrind")
-assert not b.wide_records(max_bytes=0).packed
+assert not b.query_data.wide_records(max_bytes=0).packed
 got = b.intersect(o, d)
 assert np.array_equal(got.prim, want.prim) and np.array_equal(got.t, want.t)
 print("same on both: wide records of 4 and 8 lanes, binary nodes")
