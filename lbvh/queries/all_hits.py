@@ -386,6 +386,7 @@ def wide_head(target: QueryTarget) -> tuple:
     """all_hits.cl's arguments before the rays for the walk through the target's wide
     records (:func:`wide_defines`): the triangles' corners in slot order
     (``target.slot_triangles()``) where the kernel's ``vertices`` go."""
+    target = query_target(target)   # a BVH gives its query data
     tree, wide = target.tree, target.wide_records()
     return (tree.nodes, wide.buffer, tree.prim_order, target.slot_triangles(),
             target.slot_faces(), tree.root, wide.root_x, wide.root_y, tree.num_nodes)

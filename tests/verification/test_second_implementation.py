@@ -74,7 +74,7 @@ for test in ("watertight", "moller"):
 print("same on both: both triangle tests, counters, any hit")
 
 # Both widths of wide records on both, and the binary walk (WIDE=0). The
-# traversal asks bvh.wide_records for the device's width (8 on a CPU, as Oclgrind is):
+# traversal asks bvh.query_data.wide_records for the device's width (8 on a CPU, as Oclgrind is):
 # width_for is patched for the 4-lane records to be the ones traced.
 import lbvh.queries.wide
 from lbvh.queries.wide import WIDTHS
@@ -85,7 +85,7 @@ for width in WIDTHS:
     lbvh.queries.wide.width_for = lambda ctx, width=width: width
     a.query_data.wide_records(width=width)
     got = a.intersect(o, d)
-    assert a._wide.width == width and a._wide.packed, width
+    assert a.query_data._wide.width == width and a.query_data._wide.packed, width
     assert np.array_equal(got.prim, want.prim) and np.array_equal(got.t, want.t), width
 lbvh.queries.wide.width_for = device_width
 b = lbvh.BVH.from_arrays(a.nodes, a.prim_order, a.root, v, f, builder="x", device="oclgrind")
