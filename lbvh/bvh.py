@@ -12,7 +12,6 @@ where the next build of the same size finds them.
 from __future__ import annotations
 
 import os
-import weakref
 from concurrent.futures import Future
 from typing import Any
 
@@ -64,10 +63,11 @@ class BVH:
         self.mesh = mesh
         self.tree = tree
         self._host: dict[str, np.ndarray] = {}
-        self._queries = QueryData(mesh, tree)
-        # The tree's buffers go back when this BVH is dropped; the query data's go
-        # with it (lbvh.queries.data).
-        weakref.finalize(self, tree.ctx.memory.dropped, tree.buffers())
+        # The query data owns the tree's buffers with its own: when this BVH (and
+        # with it its query data) is dropped they go back to the context's memory in
+        # one hand-over, as one dropped tree's, which the next build of the same
+        # size takes (lbvh.device.memory).
+        self._queries = QueryData(mesh, tree, owns_tree=True)
 
     # -- what the tree and mesh say ---------------------------------------------
     ctx = property(lambda self: self.tree.ctx, doc="the :class:`lbvh.device.Context`")

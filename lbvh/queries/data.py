@@ -36,9 +36,9 @@ from .winding_moments import make_moments
 class QueryData:
     """The query data of ``tree`` over ``mesh`` (see the module docstring).
 
-    ``owns_tree``: the tree's buffers go back with this object's (the winding walk's
-    copy, which only its QueryData holds); otherwise the tree's owner (a
-    :class:`lbvh.BVH`) keeps them.
+    ``owns_tree``: the tree's buffers go back with this object's, in one hand-over
+    (a BVH's query data, and the winding walk's copy); otherwise the tree's owner
+    keeps them.
     """
 
     def __init__(self, mesh: Mesh, tree: Tree, *, owns_tree: bool = False) -> None:
