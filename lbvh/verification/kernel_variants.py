@@ -244,10 +244,17 @@ def conditional_defines(source: str) -> set[str]:
 
 
 def covering_variants(variants: list[Variant], sources: dict[str, str],
-                      value_only: Iterable[str] = ("STACK_SIZE",)) -> list[Variant]:
+                      value_only: Iterable[str] = ("STACK_SIZE",),
+                      strength: int | None = None) -> list[Variant]:
     """A subset of ``variants``: every combination of the defines other than
     ``value_only``, each with one value of the ``value_only`` defines, chosen so
     that every value of each is compiled at least once.
+
+    ``strength`` t (``None``: every combination) keeps, of the combinations of a
+    file's code-selecting defines, a greedy covering array of strength t: every
+    set of t (define, value) pairs that some variant of the file holds is held by
+    a kept one (Cohen et al. 1997, AETG's greedy choice). Interactions of more than
+    t switches are then not all compiled: the full product is the default.
 
     ``value_only`` names defines that only give a value (traverse.cl's
     STACK_SIZE sizes its private stack arrays; SLAB_PAD is a float literal):
@@ -273,6 +280,8 @@ def covering_variants(variants: list[Variant], sources: dict[str, str],
     def values(v: Variant) -> set[tuple]:
         return {(v[0], k, val) for k, val in v[1].items() if k in value_only}
 
+    if strength is not None:
+        groups = {code: groups[code] for code in _strength_cover(list(groups), strength)}
     used: dict[tuple, int] = {}   # how often each value-only value was picked: round robin
     for members in groups.values():
         best = min(members, key=lambda v: sum(used.get(x, 0) for x in values(v)))
@@ -285,3 +294,23 @@ def covering_variants(variants: list[Variant], sources: dict[str, str],
                 picked[variant_key(*v)] = v
                 used.update((x, 1) for x in values(v))
     return list(picked.values())
+
+
+def _strength_cover(codes: list[tuple], strength: int) -> list[tuple]:
+    """Of ``codes`` ``(filename, ((define, value), ...))``, a subset in which every
+    ``strength`` pairs held together by some code of a file are held together by a
+    kept one: the greedy choice, the code that holds most uncovered sets first
+    (ties to the earlier code, so the choice is the same on every run)."""
+    if strength < 1:
+        raise ValueError(f"strength must be at least 1, not {strength}")
+    kept: list[tuple] = []
+    for filename in sorted({code[0] for code in codes}):
+        mine = [code for code in codes if code[0] == filename]
+        sets = {code: set(itertools.combinations(code[1], min(strength, len(code[1]))))
+                for code in mine}
+        needed = set().union(*sets.values())
+        while needed:
+            best = max(mine, key=lambda code: len(sets[code] & needed))
+            kept.append(best)
+            needed -= sets[best]
+    return kept

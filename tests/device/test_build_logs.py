@@ -27,6 +27,7 @@ which the test verifies); ``LBVH_ALL_VARIANTS=1`` compiles every variant
 """
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import re
@@ -223,6 +224,26 @@ def test_covering_variants_cover_every_code_path_and_value():
             strip = lambda d: tuple((k, x) for k, x in d.items() if k != "STACK_SIZE")  # noqa: E731
             assert ({strip(d) for f, d in full if f == filename}
                     == {strip(d) for f, d in cover if f == filename}), filename
+        # strength t: every t (define, value) pairs some variant of a file holds, a kept one holds
+        for t in (1, 2, 3):
+            cover = kv.covering_variants(full, sources, strength=t)
+            assert {kv.variant_key(*v) for v in cover} <= {kv.variant_key(*v) for v in full}
+            for filename in {f for f, _ in full}:
+                def sets(vs):
+                    out = set()
+                    for f, d in vs:
+                        if f == filename:
+                            items = tuple((k, x) for k, x in d.items() if k != "STACK_SIZE")
+                            out |= set(itertools.combinations(items, min(t, len(items))))
+                    return out
+                assert sets(full) == sets(cover), (filename, t)
+            stacks = {d.get("STACK_SIZE") for f, d in cover if f == "traverse.cl"}
+            assert stacks == {d.get("STACK_SIZE") for f, d in full if f == "traverse.cl"}
+    # strength 3 cuts traverse.cl's product (test_portability compiles it)
+    three = kv.covering_variants(kv.kernel_variants(False), sources, strength=3)
+    assert len(three) < len(kv.covering_variants(kv.kernel_variants(False), sources))
+    with pytest.raises(ValueError, match="strength must be at least 1"):
+        kv.covering_variants(kv.kernel_variants(False), sources, strength=0)
     with pytest.raises(ValueError, match="WIDE selects code"):
         kv.covering_variants(kv.kernel_variants(True), sources, value_only=("WIDE",))
 
