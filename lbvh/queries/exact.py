@@ -66,29 +66,50 @@ def _sign(n: int) -> int:
     return (n > 0) - (n < 0)
 
 
+def _distinct_rows(*arrays) -> tuple[list[list[int]], np.ndarray]:
+    """The rows of the float32 ``(N, 3)`` arrays side by side, once each distinct row
+    (bit for bit), as lists of exact integers times ``2^149`` (:func:`to_int`), and
+    ``int (N,)``: which distinct row each row is. The exact signs below are taken once
+    per distinct input: a scene of identical triangles asks the same question many
+    times."""
+    rows = np.ascontiguousarray(np.concatenate(
+        [np.asarray(a, np.float32).reshape(len(arrays[0]), -1) for a in arrays], axis=1))
+    _, first, inverse = np.unique(rows.view(np.uint32), axis=0, return_index=True,
+                                  return_inverse=True)
+    # float32 -> float64 -> times 2^149 is exact, and so is int() of that float
+    scaled = np.ldexp(rows[first].astype(np.float64), 149).tolist()
+    return [[int(x) for x in row] for row in scaled], inverse.reshape(-1)
+
+
 def edge_signs_exact(e, o, p, r) -> np.ndarray:
     """``int (N,)``: the exact sign of the edge function ``x_p y_r - y_p x_r`` of corners
     ``p`` and ``r`` for shear ``e = (ex, ey, ez)`` and origin ``o`` (all float32
     ``(N, 3)`` in the ray's axis order kx, ky, kz): ``sign(ez) sign(e . ((p - o) x
     (r - o)))``, as ``exact_edge_sign``."""
-    out = np.zeros(len(e), np.int64)
-    for k in range(len(e)):
-        ei, oi, pi, ri = ([to_int(x) for x in row] for row in (e[k], o[k], p[k], r[k]))
+    if len(e) == 0:
+        return np.zeros(0, np.int64)
+    rows, inverse = _distinct_rows(e, o, p, r)
+    out = np.zeros(len(rows), np.int64)
+    for k, row in enumerate(rows):
+        ei, oi, pi, ri = row[0:3], row[3:6], row[6:9], row[9:12]
         q = [pi[j] - oi[j] for j in range(3)]
         s = [ri[j] - oi[j] for j in range(3)]
-        out[k] = _sign(_det3(ei, q, s)) * (1 if np.float32(e[k][2]) >= 0 else -1)
-    return out
+        out[k] = _sign(_det3(ei, q, s)) * (1 if ei[2] >= 0 else -1)
+    return out[inverse]
 
 
 def numerator_signs_exact(o, a, b, c) -> np.ndarray:
     """``int (N,)``: the exact sign of ``T = -ez^2 det[a - o, b - o, c - o]`` (float32
     ``(N, 3)`` inputs in the ray's axis order), as ``exact_numerator_sign``."""
-    out = np.zeros(len(o), np.int64)
-    for k in range(len(o)):
-        oi, ai, bi, ci = ([to_int(x) for x in row] for row in (o[k], a[k], b[k], c[k]))
-        qa, qb, qc = ([v[j] - oi[j] for j in range(3)] for v in (ai, bi, ci))
+    if len(o) == 0:
+        return np.zeros(0, np.int64)
+    rows, inverse = _distinct_rows(o, a, b, c)
+    out = np.zeros(len(rows), np.int64)
+    for k, row in enumerate(rows):
+        oi = row[0:3]
+        qa, qb, qc = ([row[3 * m + j] - oi[j] for j in range(3)] for m in (1, 2, 3))
         out[k] = -_sign(_det3(qa, qb, qc))
-    return out
+    return out[inverse]
 
 
 def ruled_signs_exact(f: np.ndarray, e, p, r) -> np.ndarray:
@@ -96,11 +117,16 @@ def ruled_signs_exact(f: np.ndarray, e, p, r) -> np.ndarray:
     ``f``, or where it is 0 the exact sign of ``y_p - y_r``, then of ``x_r - x_p``,
     as ``exact_ruled_sign``."""
     out = np.asarray(f, np.int64).copy()
-    for k in np.flatnonzero(out == 0):
-        ex, ey, ez = (to_int(x) for x in e[k])
-        pi, ri = ([to_int(x) for x in row] for row in (p[k], r[k]))
+    zero = np.flatnonzero(out == 0)
+    if len(zero) == 0:
+        return out
+    rows, inverse = _distinct_rows(*(np.asarray(x, np.float32)[zero] for x in (e, p, r)))
+    signs = np.zeros(len(rows), np.int64)
+    for k, row in enumerate(rows):
+        (ex, ey, ez), pi, ri = row[0:3], row[3:6], row[6:9]
         sy = _sign(ez * (pi[1] - ri[1]) - ey * (pi[2] - ri[2]))
-        out[k] = sy if sy != 0 else _sign(ez * (ri[0] - pi[0]) - ex * (ri[2] - pi[2]))
+        signs[k] = sy if sy != 0 else _sign(ez * (ri[0] - pi[0]) - ex * (ri[2] - pi[2]))
+    out[zero] = signs[inverse]
     return out
 
 
