@@ -53,7 +53,7 @@ from lbvh.builders.morton import KEY_DTYPE, code_bits, morton_codes
 from lbvh.builders.options import LBVHOptions
 from lbvh.builders.pipeline import build_tree
 from lbvh.device.sort import radix_sort
-from lbvh.rendering.scene import load_mesh
+from lbvh.files import load_mesh
 from lbvh.report import PHASES
 from lbvh.tree import Mesh
 from lbvh.verification import meshes
@@ -205,7 +205,7 @@ def tree_figures(bvh: lbvh.BVH) -> dict:
            "peak_device_bytes": rep.peak_device_bytes,
            "bytes_per_triangle": rep.bytes_per_triangle, "sah_cost": None}
     try:
-        from lbvh.verification.quality import sah_cost
+        from lbvh.metrics.quality import sah_cost
         out["sah_cost"] = float(sah_cost(bvh))
     except ImportError:
         pass

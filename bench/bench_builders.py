@@ -18,7 +18,7 @@ rounds that run every builder once, so that the machine's noise hits all alike):
   included, counters off), hence rays per second; for each of our trees, in the
   same rounds, also the global-order traversal (``order="global"``: the nearest
   pending node of all first, from a heap; Kay & Kajiya 1986);
-* the tree: SAH cost normalised by the root area (``lbvh.verification.quality.sah_cost``,
+* the tree: SAH cost normalised by the root area (``lbvh.metrics.quality.sah_cost``,
   C_node = C_tri = 1) and its ratio to the serial SAH tree's; depth, nodes,
   leaves, memory; the sampled EPO (end-point overlap, Aila, Karras & Laine
   2013; ``tree_quality``, 32K surface samples); the ray-sampled cost of the same
@@ -30,7 +30,7 @@ rounds that run every builder once, so that the machine's noise hits all alike):
   identically and the global order's stack (heap) overflows;
 * hit agreement with the reference (the SAH tree's hits, same kernel): the
   fraction of rays with the same hit or miss, the same primitive and ``t``
-  within the float32 bound :func:`lbvh.verification.error_bound.t_bound`,
+  within the float32 bound :func:`lbvh.metrics.error_bound.t_bound`,
   ``|cos a|`` floored at :data:`common.AGREEMENT_COS_FLOOR` (:func:`common.agreement`);
   ``with ties`` also accepts another primitive at ``t`` within the bound (two
   triangles meeting the ray at one point);
@@ -62,7 +62,7 @@ camera sees). Progress goes to stderr.
 
 The scenes and cameras, the peers' adapters, the agreement and the timing
 helpers are shared with the other benches in ``bench/common.py``; the SAH
-cost constants come from :mod:`lbvh.builders.cost`.
+cost constants come from :mod:`lbvh.metrics.cost`.
 """
 from __future__ import annotations
 
@@ -85,12 +85,12 @@ import numpy as np
 
 import lbvh
 from lbvh import device as dev
-from lbvh.builders.cost import C_NODE, C_TRI, MAX_LEAF_SIZE
-from lbvh.rendering.camera import frame_bounds
+from lbvh.metrics.cost import C_NODE, C_TRI, MAX_LEAF_SIZE
+from lbvh.camera import frame_bounds
 from lbvh.queries.traverse import intersect
 from lbvh.verification import meshes
-from lbvh.verification.error_bound import t_bound
-from lbvh.verification.quality import EPO_SAMPLES, tree_quality
+from lbvh.metrics.error_bound import t_bound
+from lbvh.metrics.quality import EPO_SAMPLES, tree_quality
 from lbvh.verification.ray_cost import ray_sampled_cost
 
 FULL_SCENES = ("bunny", "sponza", "sibenik", "conference", "soup-1m", "terrain-1m")
@@ -709,7 +709,7 @@ COLUMN_NOTES = f"""Columns: `build ms` host arrays to a tree on the device (peer
 Embree's scene commit; `(1x)`: built once, the budget cut the repeats; `median`, `midpoint`
 and `sah` are host builds, their upload included); `render ms` closest hits of the primary rays (`lbvh.queries.traverse.intersect`,
 transfers included; peers: their own traversal); `EPO`: end-point overlap (Aila, Karras & Laine
-2013) from {EPO_SAMPLES // 1024}K surface samples (`lbvh.verification.quality.tree_quality`; standard error in the
+2013) from {EPO_SAMPLES // 1024}K surface samples (`lbvh.metrics.quality.tree_quality`; standard error in the
 JSON); `ray cost`: ray-sampled cost of all the primary rays, inner nodes + leaf triangles their
 segments up to the closest hit enter (`lbvh.verification.ray_cost.ray_sampled_cost`, the SAH
 cost's units); `SAH / ref`, `trav / ref`: SAH cost and measured

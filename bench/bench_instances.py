@@ -25,7 +25,7 @@ contestant that has spent ``--budget`` seconds sits out the later rounds):
 * agreement: the scene's closest hits against the flattened lbvh tree's on the
   same rays (same hit or miss, the same world triangle via
   ``scene.flat_prim(hits)``, ``t`` within the float32 bound of
-  :func:`lbvh.verification.error_bound.t_bound`) and the any-hit answers; on
+  :func:`lbvh.metrics.error_bound.t_bound`) and the any-hit answers; on
   every ray where the whole flattened copy is built, else on the rays of a few
   pixel tiles against a flattened copy of just the instances whose world boxes
   those rays cross (no other instance can be hit by them);
@@ -63,9 +63,9 @@ import lbvh
 from lbvh import device as dev
 from lbvh.builders import pipeline
 from lbvh.queries.instances import NODE_CHUNKS
-from lbvh.rendering.scene import load_mesh
+from lbvh.files import load_mesh
 from lbvh.verification import meshes
-from lbvh.verification.error_bound import t_bound
+from lbvh.metrics.error_bound import t_bound
 
 FULL_MESH, QUICK_MESH = "bunny", "teapot"
 FULL_INSTANCES, QUICK_INSTANCES = (100, 1000), (9, 36)
@@ -652,7 +652,7 @@ def markdown(report: dict) -> str:
         lines += ["", "The scene's closest hits against the reference's on the same rays: "
                   "the same hit or miss, the same world triangle (`scene.flat_prim(hits)` against "
                   "the flattened mesh's face) and `t` within the float32 bound "
-                  f"`{common.AGREEMENT_T_BOUND}` of `lbvh.verification.error_bound.t_bound` "
+                  f"`{common.AGREEMENT_T_BOUND}` of `lbvh.metrics.error_bound.t_bound` "
                   "(with ties: another triangle at the same `t`). The scene moves the ray into "
                   "each instance's space, the flattened copy moves the vertices: a ray within "
                   "rounding of a silhouette edge may hit on one side only (at most "

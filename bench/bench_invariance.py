@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 import lbvh
-from lbvh.rendering.scene import load_mesh
+from lbvh.files import load_mesh
 from lbvh.verification import invariance
 
 GENERATED = {"slivers": lambda: invariance.sliver_soup(4000, 0)}

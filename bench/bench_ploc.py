@@ -20,7 +20,7 @@ of lower indices, which makes a mutual pair in every step), uploads them with
 rounds as the device LBVH default and the bench's best LBVH (treelets and
 collapse, ``bench_traverse``'s `lbvh+treelets2+collapse`):
 
-* the SAH cost (``lbvh.verification.quality.sah_cost``) and its ratio to the
+* the SAH cost (``lbvh.metrics.quality.sah_cost``) and its ratio to the
   serial sweep SAH tree's (``builder="sah"``), the reference of bench_builders;
 * closest-hit rays per second through ``bvh.intersect`` (the median of
   ``--rounds`` interleaved rounds), and the answers' agreement with the default
@@ -48,7 +48,7 @@ import lbvh
 from lbvh.builders.bounds import triangle_boxes_numpy
 from lbvh.builders.morton import morton_codes_numpy
 from lbvh.layout import make_nodes
-from lbvh.verification.quality import sah_cost
+from lbvh.metrics.quality import sah_cost
 
 HERE = Path(__file__).resolve().parent
 

@@ -48,11 +48,11 @@ the package's exact references:
 
 * closest: the distance against the float64 brute force
   (:func:`lbvh.queries.closest.closest_points_numpy`), within
-  :func:`lbvh.verification.error_bound.closest_distance_bound` (``4 u s``);
+  :func:`lbvh.metrics.error_bound.closest_distance_bound` (``4 u s``);
 * signed distance: ``|d|`` as for closest, and the sign against the exact
   float64 winding number (:func:`lbvh.queries.winding.winding_numbers_numpy`):
   inside where ``w > 1/2``; contains: that same inside;
-* winding numbers: within :data:`lbvh.verification.error_bound.WINDING_BOUND`;
+* winding numbers: within :data:`lbvh.metrics.error_bound.WINDING_BOUND`;
 * count hits: the count of the float64 oracle
   (:func:`lbvh.verification.oracle.all_hits_brute`); every hit: the same count and
   each ``t`` (nearest first) within the float32 bound of bench/common.py;
@@ -95,8 +95,8 @@ from lbvh.queries.closest import closest_points_numpy
 from lbvh.queries.overlap import overlapping_numpy
 from lbvh.queries.winding import winding_numbers_numpy
 from lbvh.queries import winding_moments
-from lbvh.rendering.scene import load_mesh
-from lbvh.verification.error_bound import (CLOSEST_BOUND_ULPS, T_BOUND_ULPS, WINDING_BOUND,
+from lbvh.files import load_mesh
+from lbvh.metrics.error_bound import (CLOSEST_BOUND_ULPS, T_BOUND_ULPS, WINDING_BOUND,
                                            closest_distance_bound, t_bound)
 from lbvh.verification.oracle import all_hits_brute
 

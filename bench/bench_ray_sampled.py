@@ -41,7 +41,7 @@ import numpy as np
 
 import lbvh
 from lbvh import device as dev
-from lbvh.builders.cost import C_NODE, C_TRI, MAX_LEAF_SIZE
+from lbvh.metrics.cost import C_NODE, C_TRI, MAX_LEAF_SIZE
 from lbvh.verification.ray_cost import ray_sampled_cost
 
 FULL_SCENES = ("bunny", "sponza", "sibenik", "conference")

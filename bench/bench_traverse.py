@@ -65,7 +65,7 @@ Error figures beside every speed: the spread of the timing samples
 ((max - min) / median) and the agreement with the reference tracer
 (``embree-1t``; ``lbvh`` when Embree is not installed): for closest hits
 :func:`common.agreement` (hit or miss, primitive, ``t`` within the float32
-bound :func:`lbvh.verification.error_bound.t_bound` with ``|cos a|`` floored at
+bound :func:`lbvh.metrics.error_bound.t_bound` with ``|cos a|`` floored at
 :data:`common.AGREEMENT_COS_FLOOR`, as in the builders bench; ``with ties``
 accepts another primitive at the same ``t``), for any hits the fraction with the same hit or miss. Rays on which
 a tracer and the reference disagree are judged (up to ``--judge`` of them per
@@ -108,7 +108,7 @@ from lbvh import device as dev
 from lbvh.queries import traverse
 from lbvh.rendering.render import AO_DISTANCE, ambient_occlusion, scene_diagonal
 from lbvh.verification.rules import Judge, Reference
-from lbvh.verification.error_bound import t_bound
+from lbvh.metrics.error_bound import t_bound
 from lbvh.verification.hard_cases import Case
 from lbvh.verification.oracle import brute_force
 

@@ -20,11 +20,11 @@ another one: what two of them need lives here.
   :func:`interleaved_rounds`, :class:`Progress`;
 * hits: :func:`agreement` with a reference tracer, and the floor of ``|cos a|``
   in the float32 bound on ``t`` the benches use (the bound itself is
-  :func:`lbvh.verification.error_bound.t_bound`);
+  :func:`lbvh.metrics.error_bound.t_bound`);
 * the command-line options and the report writing of the benches that trace
   camera rays, and :func:`save_view`.
 
-The cost constants of the SAH come from :mod:`lbvh.builders.cost`.
+The cost constants of the SAH come from :mod:`lbvh.metrics.cost`.
 """
 from __future__ import annotations
 
@@ -56,11 +56,11 @@ from lbvh.verification import meshes  # noqa: E402
 import lbvh  # noqa: E402
 from lbvh import device as dev  # noqa: E402
 from lbvh.progress import bar as progress_bar  # noqa: E402
-from lbvh.rendering.camera import Camera  # noqa: E402
+from lbvh.camera import Camera  # noqa: E402
 from lbvh.rendering.image import write_image  # noqa: E402
 from lbvh.rendering.render import display, shade_primary  # noqa: E402
-from lbvh.rendering.scene import load_mesh  # noqa: E402
-from lbvh.verification.error_bound import T_BOUND_ULPS  # noqa: E402
+from lbvh.files import load_mesh  # noqa: E402
+from lbvh.metrics.error_bound import T_BOUND_ULPS  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
@@ -74,7 +74,7 @@ DEFAULT_OUT = HERE / "out"
 # -- hits --------------------------------------------------------------------------
 
 #: Floor of ``|cos a|`` in the benches' agreement test: the float32 bound on ``t``
-#: (:func:`lbvh.verification.error_bound.t_bound`, whose own floor only keeps the
+#: (:func:`lbvh.metrics.error_bound.t_bound`, whose own floor only keeps the
 #: quotient finite) with a floor of 1e-3, a stricter test for grazing rays, as the
 #: tables' column notes say.
 AGREEMENT_COS_FLOOR = 1e-3

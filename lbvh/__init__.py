@@ -15,27 +15,28 @@ Entry points:
 Devices are chosen by name (``device=`` or ``$LBVH_DEVICE``, :mod:`lbvh.device`).
 The tree layout is documented in docs/pages/layout.md.
 
-The package, in layers (a module imports only from layers above it in this list):
+The package, in layers (a folder or module imports only from layers above it in this
+list; tests/test_layers.py checks it folder by folder):
 
-==================  =================================================================
-``layout``,         the node record; mesh checks; the build report (numpy only)
-``mesh``, ``report``
-``device/``         contexts, programs, device memory, launches, the radix sort
-``tree``            the values builders take and return: ``Mesh``, ``Tree``
-``builders/``       cost model, options, the stages (bounds, morton, emit, refit),
-                    the optimisers (restructure, collapse), the device pipeline,
-                    the SAH reference, the median and midpoint splits
-``queries/``        rays, wide records, ray order, the traversal, every hit,
-                    closest points, winding numbers, box overlaps
-``verification/``   numpy checks a tree and answers are measured by: validator,
-                    quality metrics, float64 oracle, float32 error bound
-``bvh``             the public :class:`BVH`, facade over mesh, tree and caches
-``api``             ``build``, ``load``, ``collapse_leaves``
-``verification/``   what runs builds to check them: hard cases, ``lbvh check``,
-                    the self-test, the kernel variants
-``rendering/``      cameras, scene files, shading, images
-``cli``             the ``lbvh`` command
-==================  =================================================================
+=======================  ============================================================
+``layout``, ``mesh``,    the node record; mesh checks; the version; progress bars;
+``version``,             contexts, programs, device memory, launches, the radix sort
+``progress``, ``device/``
+``data/``, ``report``    the shipped meshes and views; the build report
+``camera``,              cameras; a tree's measures (cost model, validator, quality,
+``metrics/``, ``tree``   error bound); the values builders take and return
+``files``, ``builders/`` reading mesh and scene files; the options, the stages, the
+                         optimisers, the device pipeline, the host builders
+``queries/``             query data, rays, wide records, ray order, the traversal,
+                         every hit, closest points, winding numbers, box overlaps
+``bvh``, ``scene``       the public :class:`BVH`, facade over mesh, tree and query
+                         data; the :class:`Scene` of instances
+``api``, ``dask``        ``build``, ``load``, ``collapse_leaves``; dask arrays
+``verification/``,       what runs builds to check them: the oracle, hard cases,
+``trimesh``              ``lbvh check``, the self-test, the kernel variants; trimesh
+``rendering/``           shading, images
+``cli``                  the ``lbvh`` command
+=======================  ============================================================
 """
 from . import data
 from .api import build, build_parts, build_scene, load
@@ -49,11 +50,11 @@ from .queries.all_hits import AllHits
 from .queries.closest import Closest
 from .queries.overlap import Overlaps
 from .queries.traverse import Hits
-from .rendering.camera import Camera
+from .camera import Camera
 from .rendering.render import render
-from .rendering.scene import load_scene
-from .verification.quality import sah_cost, tree_quality
-from .verification.validate import BVHValidationError
+from .files import load_scene
+from .metrics.quality import sah_cost, tree_quality
+from .metrics.validate import BVHValidationError
 from .verification.selftest import require as _self_test
 from .version import __version__
 

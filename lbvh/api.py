@@ -24,7 +24,7 @@ from .builders.options import (SPLIT_BUILDERS, CollapseOptions, LBVHOptions, SAH
 from .bvh import SAVE_FORMAT_VERSION, BVH
 from .layout import NODE_DTYPE
 from .mesh import MissingFileError, as_mesh
-from .rendering.scene import load_mesh
+from .files import load_mesh
 from .scene import Scene
 from .tree import Mesh
 

@@ -31,7 +31,7 @@ from .queries.traverse import DeviceHitArrays, Hits
 from .queries.data import QueryData
 from .report import BuildReport, tree_statistics
 from .tree import Mesh, Tree, upload_tree
-from .verification.validate import BVHValidationError, validate_tree
+from .metrics.validate import BVHValidationError, validate_tree
 
 SAVE_FORMAT_VERSION = 1
 

@@ -39,12 +39,12 @@ from .builders.restructure import TREELET_LEAVES, TREELET_MIN_LEAVES
 from .device import DeviceError, all_devices, describe, find_device, get_context, pocl_target
 from .data import MESHES
 from .mesh import MissingFileError
-from .rendering.camera import (DEFAULT_FOV, DEFAULT_SIZE, MAX_SIDE, Camera, frame_bounds, view_camera,
+from .camera import (DEFAULT_FOV, DEFAULT_SIZE, MAX_SIDE, Camera, frame_bounds, view_camera,
                                views_name)
 from .rendering.image import image_kind
 from .rendering.render import AO_SAMPLES, MODES, check_mode, render
-from .rendering.scene import Scene, find_scene, load_scene
-from .scene import Scene as LbvhScene
+from .files import SceneFile, find_scene, load_scene
+from .scene import Scene
 from .verification import selftest
 from .verification.check import add_arguments as add_check_arguments
 from .verification.check import cmd_check as run_checks
@@ -97,7 +97,7 @@ def parse_vector(option: str, text: str) -> tuple[float, float, float]:
     return values  # type: ignore[return-value]
 
 
-def choose_camera(args: argparse.Namespace, scene: Scene,
+def choose_camera(args: argparse.Namespace, scene: SceneFile,
                   size: tuple[int, int] | None) -> tuple[Camera, str]:
     """The camera ``lbvh render`` uses, and where it comes from (its ``camera:`` line).
 
@@ -200,7 +200,7 @@ def _scene_name(text: str) -> str:
 def cmd_info(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene)
     bvh = _build(scene, args)
-    if isinstance(bvh, LbvhScene):
+    if isinstance(bvh, Scene):
         return _info_scene(args, bvh)
     if args.validate:
         bvh.validate()
@@ -314,7 +314,7 @@ def _run_query(bvh: Any, kind: str, data: Any, args: argparse.Namespace
     file of placed meshes is asked through its :class:`lbvh.Scene` (the instance of each
     answer in an ``instance`` array; what a scene refuses is refused with the scene's
     message)."""
-    scene = isinstance(bvh, LbvhScene)
+    scene = isinstance(bvh, Scene)
     if kind == "closest":
         if scene:
             got = bvh.closest_points(data, max_distance=args.max_distance)
@@ -460,13 +460,13 @@ def cmd_query(args: argparse.Namespace) -> int:
     if args.output is not None:
         write_answers(args.output, arrays)
     summary = {"scene": _scene_name(args.scene), "query": args.kind,
-               **({"instances": bvh.num_instances} if isinstance(bvh, LbvhScene) else {}),
+               **({"instances": bvh.num_instances} if isinstance(bvh, Scene) else {}),
                reads: count, "seconds": seconds, **fields, "output": args.output}
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
         placed = (f": {bvh.num_instances} instances of {len(bvh.meshes)} meshes"
-                  if isinstance(bvh, LbvhScene) else "")
+                  if isinstance(bvh, Scene) else "")
         print(f"scene:     {summary['scene']}{placed}")
         print(f"{reads + ':':<10} {count:,} from {args.input}")
         for line in lines:
@@ -503,7 +503,7 @@ def cmd_render(args: argparse.Namespace) -> int:
                     triangle_test=args.triangle_test, order=args.order)
     result.save(args.output)
     hits = int((result.primary_hits.prim >= 0).sum())
-    if isinstance(bvh, LbvhScene):
+    if isinstance(bvh, Scene):
         print(f"scene:     {_scene_name(args.scene)}: {bvh.num_instances} instances of "
               f"{len(bvh.meshes)} meshes, {bvh.num_triangles:,} triangles in world space")
         built = f"{len(bvh.meshes)} meshes and the top level"
@@ -516,7 +516,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     print(f"device:    {bvh.ctx.name}")
     sampled = "" if args.ray_sample is None else f" (splits by {args.ray_sample} camera rays)"
     print(f"build:     {args.builder}{sampled} in {build_seconds * 1e3:.1f} ms"
-          f"{device_time if not isinstance(bvh, LbvhScene) else ''}, {built}")
+          f"{device_time if not isinstance(bvh, Scene) else ''}, {built}")
     order = "" if args.order == "ordered" else f", {args.order} order"
     print(f"render:    {args.mode} {camera.width}x{camera.height} ({args.triangle_test}{order}) in "
           f"{result.total_seconds * 1e3:.1f} ms, of which first calls (kernel compile) "

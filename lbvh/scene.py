@@ -391,7 +391,7 @@ class Scene:
 
         Error bound: against the float64 brute force over :meth:`flattened`'s triangles
         (:func:`lbvh.queries.closest.closest_points_numpy`), ``|distance - d_ref|`` is
-        within :func:`lbvh.verification.error_bound.scene_closest_distance_bound` of the
+        within :func:`lbvh.metrics.error_bound.scene_closest_distance_bound` of the
         flattened vertices and the points: the mesh's bound (4 units of float32
         rounding of ``|p| + max |vertex|``) plus one unit of ``max |vertex|`` for the
         flattened copy's own rounding of its world vertices to float32 (the kernel
@@ -417,7 +417,7 @@ class Scene:
     @dev.serialised
     def winding_numbers(self, points: Any) -> np.ndarray:
         """``float32 (N,)``: the generalised winding number of the scene, the sum of its
-        instances', each within its mesh's bound (:data:`~lbvh.verification.error_bound.
+        instances', each within its mesh's bound (:data:`~lbvh.metrics.error_bound.
         WINDING_BOUND`) of the exact sum over the instance's world triangles, for any
         placement. An instance placed by a similarity, or of a closed mesh (whose winding
         number is a degree, kept by any affine map), is its mesh's winding number at the

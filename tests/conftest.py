@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from lbvh.device import get_context
-from lbvh.rendering.scene import load_mesh
+from lbvh.files import load_mesh
 from lbvh.verification.meshes import soup
 
 REPO = Path(__file__).resolve().parents[1]

@@ -34,7 +34,7 @@ import pytest
 import lbvh
 from lbvh.cli import main as cli_main
 from lbvh.mesh import MissingFileError
-from lbvh.rendering.camera import frame_bounds
+from lbvh.camera import frame_bounds
 from lbvh.verification.hard_cases import cube_mesh
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "pages" / "bad-input.md"

@@ -455,7 +455,7 @@ def test_a_file_of_placed_meshes_keeps_its_instances(capsys, tmp_path):
     import lbvh
     from lbvh.rendering.image import read_image
     from lbvh.rendering.render import render_reference
-    from lbvh.rendering.scene import load_scene
+    from lbvh.files import load_scene
     path = tmp_path / "two.glb"
     _placed_meshes_file(path)
     assert main(["info", str(path), "--json"]) == 0
@@ -482,7 +482,7 @@ def test_query_through_a_file_of_placed_meshes(capsys, tmp_path):
     """lbvh query on a glTF that places meshes answers through its lbvh.Scene, naming the
     instance of each answer, closest points under a shear too."""
     import lbvh
-    from lbvh.rendering.scene import load_scene
+    from lbvh.files import load_scene
     path = tmp_path / "two.glb"
     _placed_meshes_file(path)
     scene = lbvh.build(load_scene(path).extras["instances"])
@@ -542,7 +542,7 @@ def test_query_through_a_file_of_placed_meshes(capsys, tmp_path):
     assert main(["query", "closest", str(tmp_path / "sheared.glb"), str(tmp_path / "p.npy"),
                  "-o", str(out)]) == 0
     from lbvh.queries.closest import closest_points_numpy
-    from lbvh.verification.error_bound import scene_closest_distance_bound
+    from lbvh.metrics.error_bound import scene_closest_distance_bound
     sheared_scene = lbvh.build(load_scene(tmp_path / "sheared.glb").extras["instances"])
     assert sheared_scene.num_instances == 2
     sv, sf, _ = sheared_scene.flattened()

@@ -12,7 +12,7 @@ from conftest import shipped_mesh
 from lbvh.queries import instance_closest
 from lbvh.queries.closest import closest_points_numpy, point_triangle_numpy
 from lbvh.verification import meshes
-from lbvh.verification.error_bound import scene_closest_distance_bound
+from lbvh.metrics.error_bound import scene_closest_distance_bound
 
 
 def odd_placements() -> np.ndarray:

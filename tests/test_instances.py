@@ -9,7 +9,7 @@ import trimesh
 import lbvh
 from conftest import shipped_mesh
 from lbvh.verification import meshes
-from lbvh.verification.error_bound import t_bound
+from lbvh.metrics.error_bound import t_bound
 from lbvh.verification.oracle import brute_force
 
 
@@ -221,7 +221,7 @@ def similarity_transforms(count: int, seed: int) -> np.ndarray:
 def test_point_queries_through_a_scene_of_similarities():
     from lbvh.queries.closest import closest_points_numpy
     from lbvh.queries.winding import winding_numbers_numpy
-    from lbvh.verification.error_bound import WINDING_BOUND
+    from lbvh.metrics.error_bound import WINDING_BOUND
     ball = lbvh.build(*meshes.cube_sphere(6))          # closed
     teapot = lbvh.build(*shipped_mesh("teapot.obj"))   # open
     scene = lbvh.Scene([ball, teapot], [0, 1, 0, 0, 1], similarity_transforms(5, 12))
@@ -259,7 +259,7 @@ def test_point_queries_through_a_scene_of_similarities():
 
 def test_winding_numbers_of_open_meshes_under_shears_are_the_world_triangles():
     from lbvh.queries.winding import winding_numbers_numpy
-    from lbvh.verification.error_bound import WINDING_BOUND
+    from lbvh.metrics.error_bound import WINDING_BOUND
     bv, bf = meshes.cube_sphere(6)
     ball = lbvh.build(bv, bf)                                  # closed: moved points exact
     cap_f = bf[bv[bf].mean(axis=1)[:, 2] > 0.2]                # a bowl: very open

@@ -1,8 +1,10 @@
-"""The package's imports form layers: no cycle, nothing imported from a higher layer,
-no import of the package's own modules hidden inside a function.
+"""The package's folders and top-level modules ("rooms") form layers: a room imports
+only rooms of a lower layer (or itself), there is no cycle, and no import of the
+package's own modules hides inside a function.
 
-The layers are those of ``lbvh/__init__.py``'s docstring; :data:`LAYERS` lists
-them from the bottom, by module name prefix (the longest prefix decides).
+The layers are those of ``lbvh/__init__.py``'s docstring; :data:`LAYERS` lists the
+rooms from the bottom. A folder is one room: every module in ``lbvh/queries/``
+is checked as ``lbvh.queries``, so a folder cannot sit on both sides of another.
 """
 from __future__ import annotations
 
@@ -13,32 +15,36 @@ import lbvh
 
 PACKAGE = Path(lbvh.__file__).resolve().parent
 
-#: (module prefix, layer): a module may import only modules of its layer or lower.
-LAYERS = [
-    ("lbvh.version", 0), ("lbvh.layout", 0), ("lbvh.mesh", 0), ("lbvh.progress", 0),
-    ("lbvh.report", 1), ("lbvh.data", 1),   # lbvh.data: the shipped files (numpy only)
-    # readers of the caller's files and cameras: numpy (and trimesh) only
-    ("lbvh.rendering.camera", 1), ("lbvh.rendering.scene", 1),
-    ("lbvh.device", 2),
-    ("lbvh.tree", 3),
-    ("lbvh.builders", 4),
-    # numpy checks that trees and answers are measured by: below the facade
-    ("lbvh.verification.validate", 4), ("lbvh.verification.quality", 4),
-    ("lbvh.verification.error_bound", 4),
-    ("lbvh.verification.oracle", 5),   # answers the queries in float64 (their Hits)
-    ("lbvh.verification.meshes", 4),
-    ("lbvh.queries", 5),
-    ("lbvh.bvh", 6), ("lbvh.scene", 6), ("lbvh.dask", 6),
-    ("lbvh.api", 7),
-    ("lbvh.verification", 8), ("lbvh.rendering", 8), ("lbvh.trimesh", 8),
-    ("lbvh.cli", 9),
-    ("lbvh", 10),
-]
+#: room -> layer: a room may import only rooms of a strictly lower layer.
+LAYERS = {
+    # foundations: the node record, mesh checks, the version, progress bars; the device
+    "lbvh.version": 0, "lbvh.layout": 0, "lbvh.progress": 0, "lbvh.mesh": 0,
+    "lbvh.device": 0,
+    "lbvh.data": 1, "lbvh.report": 1,       # the shipped files; the build report
+    # cameras; the tree's measures (validator, SAH cost model and quality, error
+    # bounds), below the builders; the values builders take and return
+    "lbvh.camera": 2, "lbvh.metrics": 2, "lbvh.tree": 2,
+    "lbvh.files": 3,                        # reading mesh and scene files, beside mesh.py
+    "lbvh.builders": 3,
+    "lbvh.queries": 4,
+    "lbvh.bvh": 5, "lbvh.scene": 6,
+    "lbvh.api": 7, "lbvh.dask": 7,
+    # on top: what runs builds to check them (lbvh check, the self-test, the oracle),
+    # trimesh's interfaces, rendering, the command line, the package's namespace
+    "lbvh.verification": 8, "lbvh.trimesh": 8,
+    "lbvh.rendering": 9,
+    "lbvh.cli": 10,
+    "lbvh": 11,
+}
+
+
+def room_of(module: str) -> str:
+    """``lbvh.queries.traverse`` -> ``lbvh.queries``; ``lbvh.api`` -> ``lbvh.api``."""
+    return ".".join(module.split(".")[:2])
 
 
 def layer_of(module: str) -> int:
-    best = max((p for p, _ in LAYERS if module == p or module.startswith(p + ".")), key=len)
-    return dict(LAYERS)[best]
+    return LAYERS[room_of(module)]
 
 
 def module_name(path: Path) -> str:
@@ -100,17 +106,23 @@ def graph() -> tuple[dict[str, set[str]], dict[str, list[str]]]:
 
 
 def test_every_module_has_a_layer():
-    for name in modules():
-        assert layer_of(name) >= 0, name
+    missing = sorted({room_of(name) for name in modules()} - set(LAYERS))
+    assert not missing, f"rooms without a layer in LAYERS: {missing}"
+    assert not set(LAYERS) - {room_of(name) for name in modules()}, "a layer names no room"
 
 
-def test_no_module_imports_from_a_higher_layer():
+def upward_imports(edges: dict[str, set[str]]) -> list[str]:
+    """Imports from one room into another of the same or a higher layer."""
+    return sorted(f"{a} ({room_of(a)}, layer {layer_of(a)}) imports {b} "
+                  f"({room_of(b)}, layer {layer_of(b)})"
+                  for a, targets in edges.items() for b in targets
+                  if room_of(a) != room_of(b) and layer_of(b) >= layer_of(a))
+
+
+def test_no_room_imports_from_its_layer_or_a_higher_one():
     edges, _ = graph()
-    upward = [f"{a} (layer {layer_of(a)}) imports {b} (layer {layer_of(b)})"
-              for a, targets in edges.items() for b in targets
-              if layer_of(b) > layer_of(a) and not a.startswith(b + ".")
-              and not (b == "lbvh" and a.startswith("lbvh."))]
-    assert not upward, "\n".join(sorted(upward))
+    upward = upward_imports(edges)
+    assert not upward, "\n".join(upward)
 
 
 def test_the_imports_have_no_cycle():
@@ -149,9 +161,16 @@ def test_no_package_import_is_hidden_in_a_function():
 
 
 def test_the_layer_check_finds_an_upward_import(tmp_path):
-    """The check itself can fail: a device module that imported the facade would be caught."""
+    """The check itself can fail: a device module that imported the facade, a metric
+    that imported a builder, or a builder that imported a room of its own layer
+    would be caught."""
     assert layer_of("lbvh.device.memory") < layer_of("lbvh.bvh")
     fake = tmp_path / "m.py"
     fake.write_text("from ..bvh import BVH\n\ndef f():\n    from .. import tree\n")
     top, inner = imports_of("lbvh.device.m", fake, set(modules()) | {"lbvh.device.m"})
     assert top == ["lbvh.bvh"] and inner == ["lbvh.tree"]
+    assert upward_imports({"lbvh.device.m": {"lbvh.bvh"}})
+    assert upward_imports({"lbvh.metrics.validate": {"lbvh.builders.bounds"}})
+    assert upward_imports({"lbvh.builders.sah": {"lbvh.files"}})   # same layer
+    assert not upward_imports({"lbvh.queries.traverse": {"lbvh.queries.rays"}})
+    assert not upward_imports({"lbvh.rendering.render": {"lbvh.verification.oracle"}})

@@ -24,7 +24,7 @@ import hashlib, random, sys, threading, time
 import numpy as np
 import lbvh
 import pyopencl.array as cl_array
-from lbvh.rendering.camera import frame_bounds
+from lbvh.camera import frame_bounds
 sys.path.insert(0, "tests")
 from conftest import random_soup, shipped_mesh
 

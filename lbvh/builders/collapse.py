@@ -30,7 +30,7 @@ import pyopencl as cl
 from .. import device as dev
 from ..tree import Tree
 from ..layout import NODE_DTYPE, children_of, is_leaf, node_depths
-from .cost import C_NODE, C_TRI, MAX_LEAF_SIZE, box_scale, scaled_half_area
+from ..metrics.cost import C_NODE, C_TRI, MAX_LEAF_SIZE, box_scale, scaled_half_area
 from .options import CollapseOptions
 from .refit import clear_arrivals
 from ..report import BuildReport

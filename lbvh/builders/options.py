@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from .cost import C_NODE, C_TRI, MAX_LEAF_SIZE, check_sah_constants
+from ..metrics.cost import C_NODE, C_TRI, MAX_LEAF_SIZE, check_sah_constants
 from .morton import AUTO_DUPLICATE_FRACTION
 from .ray_sampled import as_ray_sample
 from .restructure import (TREELET_LEAVES, TREELET_MIN_LEAVES, check_min_leaves, check_rounds,
@@ -83,9 +83,9 @@ class LBVHOptions:
 @dataclass(frozen=True)
 class SAHOptions:
     """The serial SAH reference: cost of a node visit ``c_node`` (default
-    :data:`~lbvh.builders.cost.C_NODE`), of a triangle test ``c_tri``
-    (:data:`~lbvh.builders.cost.C_TRI`), largest leaf ``max_leaf_size``
-    (:data:`~lbvh.builders.cost.MAX_LEAF_SIZE`; bigger nodes are always split).
+    :data:`~lbvh.metrics.cost.C_NODE`), of a triangle test ``c_tri``
+    (:data:`~lbvh.metrics.cost.C_TRI`), largest leaf ``max_leaf_size``
+    (:data:`~lbvh.metrics.cost.MAX_LEAF_SIZE`; bigger nodes are always split).
 
     ``rays`` (default ``None``: the SAH's areas): a sample of the rays the tree
     will trace, a :class:`~lbvh.builders.ray_sampled.RaySample` or an ``(origins,

@@ -24,7 +24,7 @@ import pyopencl as cl
 from ..device import Context, Scope, run
 from ..tree import Tree
 from ..layout import NODE_DTYPE
-from .cost import C_NODE, C_TRI, box_scale, scaled_half_area
+from ..metrics.cost import C_NODE, C_TRI, box_scale, scaled_half_area
 from .refit import clear_arrivals
 
 KERNEL_FILE = "restructure.cl"

@@ -44,7 +44,7 @@ from .. import device as dev
 from ..layout import NODE_DTYPE, parents_of
 from ..tree import Mesh, Tree, upload_tree
 from .options import SAHOptions
-from .cost import C_NODE, C_TRI, MAX_LEAF_SIZE, box_area
+from ..metrics.cost import C_NODE, C_TRI, MAX_LEAF_SIZE, box_area
 from ..progress import bar as progress_bar
 from ..report import BuildReport
 from .bounds import triangle_boxes_numpy

@@ -14,7 +14,7 @@ the node owns; at the root every triangle's own box). At every node:
   slabs costed as ``A(L) |L| + A(R) |R|`` with a straddling reference counted
   on both sides;
 * the cheaper of the two wins (the SAH of Wald 2007, eq. 2, with the cost
-  constants of :mod:`lbvh.builders.cost`), or a leaf where it is cheaper than
+  constants of :mod:`lbvh.metrics.cost`), or a leaf where it is cheaper than
   both and holds at most ``max_leaf_size`` references; a spatial split sends a
   straddling reference to both sides, each with the box of its part.
 
@@ -41,7 +41,7 @@ from ..report import BuildReport
 from ..tree import Mesh, Tree, upload_tree
 from ..layout import is_leaf
 from .bounds import round_outward
-from .cost import box_area
+from ..metrics.cost import box_area
 from .options import SBVHOptions
 from .sah import sah_tree
 

@@ -258,7 +258,7 @@ def segment_work(target: QueryTarget, origins: Any, directions: Any, tmin: Any =
     segment ``[tmin, tmax]`` enters (the slab test of the traversal) and the triangles of
     those leaves. With ``tmax`` at the closest hit this is the work every traversal of
     this tree must do for the ray, whatever its order: what the ray-sampled cost
-    (:func:`lbvh.verification.quality.ray_sampled_cost`) weighs."""
+    (:func:`lbvh.metrics.quality.ray_sampled_cost`) weighs."""
     target = query_target(target)   # a BVH gives its query data
     batch = _check_batch(batch_size)
     rays = _rays(origins, directions, tmin, tmax, "raise")

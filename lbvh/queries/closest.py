@@ -6,7 +6,7 @@ branch-and-bound traversal of the tree with the point-box distance as the
 bound, and Ericson's point-triangle test (Real-Time Collision Detection,
 5.1.5) in float32 at the leaves. Its twin is :func:`closest_points_numpy`, a
 float64 brute force over every triangle; the two agree on the distance within
-:func:`lbvh.verification.error_bound.closest_distance_bound` (the triangle may
+:func:`lbvh.metrics.error_bound.closest_distance_bound` (the triangle may
 differ where two are equally near).
 
 Points are ``(N, 3)`` real arrays (converted to float32); a NaN, infinite or

@@ -14,7 +14,7 @@ vertices moved to world space before the exact point-triangle distance of
 Accuracy: against the float64 brute force over the flattened scene's
 triangles (:meth:`lbvh.Scene.flattened` and
 :func:`lbvh.queries.closest.closest_points_numpy`), the distance is within
-:func:`lbvh.verification.error_bound.scene_closest_distance_bound` (the mesh's
+:func:`lbvh.metrics.error_bound.scene_closest_distance_bound` (the mesh's
 bound plus the flattened copy's float32 rounding of its world vertices, which
 the kernel does not make: it transforms in double). Where two triangles (of
 one instance or of overlapping instances) are equally near within that

@@ -34,7 +34,7 @@ import numpy as np
 import pyopencl as cl
 
 from .. import device as dev
-from ..builders.cost import box_scale, scaled_half_area
+from ..metrics.cost import box_scale, scaled_half_area
 from ..layout import is_leaf
 from ..tree import Tree
 

@@ -28,7 +28,7 @@ second order, where it is also far enough for its area
 moments once per tree, in float64 on the device, and the :class:`lbvh.BVH` keeps
 them; :func:`expansion_numpy` is the twin of the far-node term). ``beta = 1.4`` (the
 default) keeps ``|w - w_exact|`` within
-:data:`lbvh.verification.error_bound.WINDING_BOUND` on the tests' meshes and
+:data:`lbvh.metrics.error_bound.WINDING_BOUND` on the tests' meshes and
 the bench's scenes, far below the 1/2 that would flip ``contains``; a larger
 ``beta`` is slower and closer. (It was 1.3 until a point of the bench's Sponza
 set came out 0.058 from the exact sum, past the bound: a cluster of small nodes
@@ -98,7 +98,7 @@ SIGN_BETA = 1.1
 #: terrain's 1.3x, for a largest error of 0.136 instead of 0.122 on Sponza).
 SIGN_NODE_ERROR = 0.16
 #: The walk at :data:`SIGN_BETA` and :data:`SIGN_NODE_ERROR` keeps ``|w - w_exact|``
-#: within this. Measured as :data:`lbvh.verification.error_bound.WINDING_BOUND` is,
+#: within this. Measured as :data:`lbvh.metrics.error_bound.WINDING_BOUND` is,
 #: over 1,048,576 points in the box grown by a fifth of each of the bench's scenes
 #: against the walk at ``beta = 4``: at most 0.087 on the bunny, 0.187 on Sponza and
 #: 0.073 on a 1M-triangle terrain through the restructured copy the walk takes

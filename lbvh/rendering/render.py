@@ -29,7 +29,7 @@ from ..bvh import BVH
 from ..scene import Scene
 from ..queries.traverse import kernel_defines
 from ..verification.oracle import brute_force
-from .camera import Camera
+from ..camera import Camera
 from .image import heat_colours, image_kind, to_8bit, write_image
 
 MODES = ("normals", "depth", "diffuse", "ao", "heatmap")

@@ -17,7 +17,7 @@ widened by ``16 u`` of the largest: the kernel's ``t`` is a convex combination
 of them (:class:`PairGeometry`), so a bound that ``kappa / |cos a|`` makes
 meaningless (1e70 and more for slivers seen edge-on) does not let any ``t`` pass.
 
-How it relates to :func:`lbvh.verification.error_bound.t_bound` (the bound the
+How it relates to :func:`lbvh.metrics.error_bound.t_bound` (the bound the
 tests and the benches use, and the one home of :data:`U`, :data:`T_BOUND` and
 :data:`UNDERFLOW`, which this analysis takes from there): the same ``T_BOUND =
 16 u`` on the same quantities, made finer per pair. ``t_bound`` takes one
@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .error_bound import T_BOUND, U, UNDERFLOW
+from ..metrics.error_bound import T_BOUND, U, UNDERFLOW
 from .hard_cases import Case
 from .oracle import woop_axes
 

@@ -1,6 +1,6 @@
 """The ray-sampled cost of a tree: its cost weighed by the rays it will trace, not by area.
 
-The SAH cost (:func:`lbvh.verification.quality.sah_cost`) weighs every node by
+The SAH cost (:func:`lbvh.metrics.quality.sah_cost`) weighs every node by
 the probability that a uniformly distributed ray meeting the root meets the
 node, its area over the root's (MacDonald & Booth 1990). Camera rays are not
 uniform, and a closest-hit ray stops at its hit; so the SAH can rank trees
@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from ..builders.cost import C_NODE, C_TRI
+from ..metrics.cost import C_NODE, C_TRI
 from ..layout import is_leaf, node_depths, parents_of, prim_range_of
 from ..queries.all_hits import segment_work
 from ..queries.rays import check_rays

@@ -33,7 +33,7 @@ def test_quick_mode_writes_every_tree_with_the_sah_trees_hits(tmp_path):
 
 def test_bounce_rays_leave_the_hit_surface_on_the_viewers_side():
     v, f = shipped_mesh("teapot.obj")
-    camera = lbvh.rendering.camera.frame_bounds(v.min(axis=0), v.max(axis=0), 32, 24)
+    camera = lbvh.camera.frame_bounds(v.min(axis=0), v.max(axis=0), 32, 24)
     o, d = camera.rays()
     hits = lbvh.build(v, f).intersect(o, d)
     bo, bd = bench.bounce_rays(v, f, o, d, hits.t, hits.prim, np.random.default_rng(1))

@@ -14,7 +14,7 @@ import pytest
 
 import lbvh
 from conftest import REPO
-from lbvh.rendering.camera import Camera
+from lbvh.camera import Camera
 from lbvh.rendering.render import AO_DISTANCE, hit_points, scene_diagonal, triangle_normals
 
 

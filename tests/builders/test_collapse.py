@@ -9,7 +9,7 @@ from conftest import random_soup, shared_mesh, shipped_mesh
 from lbvh.api import collapse_leaves
 from lbvh.builders.collapse import collapse_decisions, collapse_numpy
 from lbvh.builders.options import CollapseOptions
-from lbvh.verification.quality import sah_cost
+from lbvh.metrics.quality import sah_cost
 from lbvh.builders.refit import refit_numpy
 
 # Costs are float32 on the device; with correctly rounded division (PoCL has it)

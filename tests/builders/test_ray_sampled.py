@@ -11,7 +11,7 @@ from conftest import random_soup, shipped_mesh
 from lbvh.builders.bounds import triangle_boxes_numpy
 from lbvh.builders.ray_sampled import TMAX_SLACK, RaySample
 from lbvh.builders.sah import sah_tree
-from lbvh.rendering.camera import frame_bounds
+from lbvh.camera import frame_bounds
 
 
 def _enters(o, inv, tmax, lo, hi):

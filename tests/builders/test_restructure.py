@@ -7,7 +7,7 @@ import pytest
 
 import lbvh
 from conftest import random_soup, shared_mesh, shipped_mesh
-from lbvh.verification.quality import sah_cost
+from lbvh.metrics.quality import sah_cost
 from lbvh.builders.refit import refit_numpy
 from lbvh.builders.restructure import TREELET_MIN_LEAVES, restructure_python, round_min_leaves
 

@@ -6,7 +6,7 @@ import pytest
 
 import lbvh
 from conftest import random_soup, shipped_mesh
-from lbvh.verification.quality import sah_cost
+from lbvh.metrics.quality import sah_cost
 from lbvh.builders.sah import best_split, sah_tree
 from lbvh.builders.bounds import triangle_boxes_numpy as triangle_boxes
 

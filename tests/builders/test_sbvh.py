@@ -11,8 +11,8 @@ from conftest import shipped_mesh
 from lbvh.builders.sbvh import clip_to_slab
 from lbvh.queries.closest import closest_points_numpy
 from lbvh.verification.oracle import all_hits_brute, brute_force
-from lbvh.verification.quality import sah_cost
-from lbvh.verification.validate import BVHValidationError
+from lbvh.metrics.quality import sah_cost
+from lbvh.metrics.validate import BVHValidationError
 
 
 def long_triangles(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

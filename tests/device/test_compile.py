@@ -153,7 +153,7 @@ def test_box_scale_is_its_twins(ctx):
     """kernels/common.h's box_scale (written on the bits) against the numpy twin of the
     collapse, bit for bit, on boxes of every magnitude, signed zeros, denormals and
     infinities."""
-    from lbvh.builders.cost import box_scale
+    from lbvh.metrics.cost import box_scale
     rng = np.random.default_rng(3)
     n = 1 << 14
     lo = (rng.uniform(-1, 1, (n, 3)) * 10.0 ** rng.uniform(-44, 38, (n, 1))).astype(np.float32)

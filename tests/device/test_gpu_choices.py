@@ -20,7 +20,7 @@ from conftest import pocl_cpu_device, random_soup, shipped_mesh
 from lbvh import device as dev
 from lbvh.builders.refit import refit_numpy
 from lbvh.device import programs
-from lbvh.verification.error_bound import WINDING_BOUND
+from lbvh.metrics.error_bound import WINDING_BOUND
 
 SCENES = {"teapot": lambda: shipped_mesh("teapot.obj"),
           "soup": lambda: random_soup(20000, seed=11)}

@@ -20,7 +20,7 @@ SCRIPT = r"""
 import hashlib, sys
 import numpy as np
 import lbvh
-from lbvh.rendering.camera import frame_bounds
+from lbvh.camera import frame_bounds
 from lbvh.queries import ray_order
 from lbvh.queries import wide
 sys.path.insert(0, "tests")

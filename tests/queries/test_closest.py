@@ -8,7 +8,7 @@ import lbvh
 from conftest import random_soup, shipped_mesh
 from lbvh.queries.closest import closest_points, closest_points_numpy, point_triangle_numpy
 from lbvh.verification import hard_cases
-from lbvh.verification.error_bound import U, closest_distance_bound
+from lbvh.metrics.error_bound import U, closest_distance_bound
 
 
 def around(v: np.ndarray, n: int, seed: int, spread: float = 0.5) -> np.ndarray:

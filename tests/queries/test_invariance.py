@@ -176,7 +176,7 @@ def test_hits_are_the_exact_ones_in_every_order_and_scale(a, b, h, s, seed, k):
 
 @functools.lru_cache(maxsize=None)
 def teapot():
-    from lbvh.rendering.scene import load_mesh
+    from lbvh.files import load_mesh
     from conftest import REPO
     return load_mesh(REPO / "scenes" / "teapot.obj")
 
@@ -328,7 +328,7 @@ def test_winding_numbers_do_not_depend_on_how_the_mesh_is_written(mesh, build):
     make another tree, which expands other nodes: the two then agree within twice the
     walk's bound, and their inside tests wherever the exact winding number is farther
     than the bound from 1/2."""
-    from lbvh.verification.error_bound import WINDING_BOUND
+    from lbvh.metrics.error_bound import WINDING_BOUND
     from lbvh.queries.winding import winding_numbers_numpy
     v, f = {"teapot": teapot, "slivers": slivers}[mesh]()
     p = invariance.winding_points(v, f, 1200, 6)

@@ -10,7 +10,7 @@ import trimesh
 import lbvh
 from conftest import shared_mesh, shipped_mesh
 from lbvh.builders.bounds import triangle_boxes_numpy
-from lbvh.verification.error_bound import closest_distance_bound
+from lbvh.metrics.error_bound import closest_distance_bound
 
 rtree = pytest.importorskip("rtree")   # trimesh's contains uses it too
 

@@ -19,7 +19,7 @@ import lbvh
 from conftest import random_soup, shared_mesh, shipped_mesh
 from lbvh.queries import traverse as tr
 from lbvh.layout import make_nodes, node_depths
-from lbvh.verification.error_bound import t_bound  # the bound of the module docstring
+from lbvh.metrics.error_bound import t_bound  # the bound of the module docstring
 from lbvh.verification.oracle import brute_force, hits_on
 from lbvh.queries.wide import WIDTHS, read_records
 from lbvh.verification import hard_cases

@@ -17,7 +17,7 @@ import pytest
 import lbvh.data
 import lbvh.trimesh as lt
 from lbvh.queries.closest import closest_points_numpy
-from lbvh.verification.error_bound import closest_distance_bound
+from lbvh.metrics.error_bound import closest_distance_bound
 
 trimesh = pytest.importorskip("trimesh")
 pytest.importorskip("rtree")   # trimesh's closest_point needs its r-tree

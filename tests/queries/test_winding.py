@@ -19,9 +19,9 @@ from lbvh.queries.winding_moments import (CORNER_ROWS, ROWS_ORDER1, ROWS_ORDER2,
                                           _triangle_terms)
 from lbvh.queries import winding
 from lbvh.verification import hard_cases, meshes
-from lbvh.verification.error_bound import INSIDE_TOLERANCE, WINDING_BOUND
+from lbvh.metrics.error_bound import INSIDE_TOLERANCE, WINDING_BOUND
 from lbvh.layout import NODE_DTYPE
-from lbvh.verification.validate import validate_tree
+from lbvh.metrics.validate import validate_tree
 
 
 def box_points(v: np.ndarray, n: int, seed: int, margin: float = 0.2) -> np.ndarray:

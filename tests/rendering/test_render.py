@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 import lbvh
-from lbvh.rendering.camera import Camera, frame_bounds
+from lbvh.camera import Camera, frame_bounds
 from lbvh.rendering.image import heat_colours, image_kind, read_image, to_8bit, write_image
 from lbvh.verification.oracle import brute_force
 from lbvh.rendering.render import (MODES, ambient_occlusion, cosine_directions, display, hammersley,
                          orthonormal_basis, render, render_reference, shade_primary,
                          triangle_normals)
-from lbvh.rendering.scene import load_scene
+from lbvh.files import load_scene
 from lbvh.queries.traverse import intersect
 
 REPO = Path(__file__).resolve().parents[2]

@@ -24,7 +24,7 @@ REFERENCES = [
 def reference_image(scene_file: str, mode: str, width: int, height: int):
     """The oracle's float image ``(H, W, C)`` of a shipped scene's camera at ``width x height``."""
     from lbvh.rendering.render import render_reference
-    from lbvh.rendering.scene import load_scene
+    from lbvh.files import load_scene
 
     scene = load_scene(REPO / "scenes" / scene_file)
     camera = scene.camera.resized(width, height)

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from lbvh.rendering.scene import apply_transform, load_mesh, load_scene, transform_matrix
+from lbvh.files import apply_transform, load_mesh, load_scene, transform_matrix
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[1]
 SCENES = REPO / "scenes"
 
 
@@ -169,7 +169,7 @@ def test_the_shipped_teapot_is_the_scenes_teapot():
 
 def test_load_scene_takes_a_shipped_name_and_a_file_of_that_name_wins(tmp_path, monkeypatch):
     import lbvh.data
-    from lbvh.rendering.scene import find_scene
+    from lbvh.files import find_scene
 
     monkeypatch.chdir(tmp_path)
     scene = load_scene("teapot")
@@ -188,7 +188,7 @@ def test_load_scene_takes_a_shipped_name_and_a_file_of_that_name_wins(tmp_path, 
 
 def test_the_shipped_views_are_the_bench_cameras():
     import lbvh.data
-    from lbvh.rendering.camera import load_views, view_camera
+    from lbvh.camera import load_views, view_camera
 
     assert not (REPO / "bench" / "cameras.json").exists()   # one set of views: the shipped one
     views = load_views()
@@ -208,7 +208,7 @@ def test_the_shipped_views_are_the_bench_cameras():
     ('{"a": [1, 2, 3]}', "view 'a': expected a camera object"),
 ])
 def test_bad_views_files_name_the_file(tmp_path, text, message):
-    from lbvh.rendering.camera import load_views
+    from lbvh.camera import load_views
 
     path = tmp_path / "views.json"
     if text is not None:
@@ -219,7 +219,7 @@ def test_bad_views_files_name_the_file(tmp_path, text, message):
 
 
 def test_a_bad_or_unknown_view_names_the_file_and_the_view(tmp_path):
-    from lbvh.rendering.camera import view_camera
+    from lbvh.camera import view_camera
 
     path = _write(tmp_path / "views.json", {"good": GOOD_CAMERA, "wide": {**GOOD_CAMERA, "fov": 190}})
     assert view_camera("good", path).fov == 45.0

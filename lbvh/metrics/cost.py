@@ -7,7 +7,7 @@ that a random ray through the root's box enters the node. The SAH reference
 (:mod:`lbvh.builders.sah`), the treelet restructuring
 (:mod:`lbvh.builders.restructure`), the leaf collapse
 (:mod:`lbvh.builders.collapse`), the quality metrics
-(:mod:`lbvh.verification.quality`) and the benches all take their defaults
+(:mod:`lbvh.metrics.quality`) and the benches all take their defaults
 from here.
 """
 from __future__ import annotations

@@ -7,8 +7,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..builders.bounds import triangle_boxes_numpy
 from ..layout import children_of, is_leaf, prim_range_of
+
+
+def triangle_boxes(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``float32 (F, 3)`` min and max corners of each triangle (exact). The validator
+    takes the boxes itself, not from the builders' bounds stage it checks."""
+    tri = vertices[faces]
+    return tri.min(axis=1), tri.max(axis=1)
 
 
 class BVHValidationError(ValueError):
@@ -123,7 +129,7 @@ def validate_tree(nodes: np.ndarray, parent: np.ndarray, prim_order: np.ndarray,
         if outside.any():
             i = _first(outside)
             _fail(f"node {internal[i]} box does not contain its {name} child {c[i]}")
-    tlo, thi = triangle_boxes_numpy(vertices, faces)
+    tlo, thi = triangle_boxes(vertices, faces)
     if clipped_leaves:
         _check_clipped_leaves(nodes, prim_order, leaf_ids, ranges, vertices, faces, tlo, thi)
         return

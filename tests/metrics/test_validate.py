@@ -6,7 +6,7 @@ import pytest
 
 import lbvh
 from conftest import shipped_mesh
-from lbvh.verification.validate import BVHValidationError, validate_tree
+from lbvh.metrics.validate import BVHValidationError, validate_tree
 
 
 @pytest.fixture(scope="module")

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from ..layout import children_of, is_leaf, node_depths, parents_of, prim_range_of
-from ..builders.cost import C_NODE, C_TRI, box_area
+from .cost import C_NODE, C_TRI, box_area
 from ..report import tree_statistics
 
 EPO_SAMPLES = 1 << 15

@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from ..data import views_path
-from ..mesh import MissingFileError
+from .data import views_path
+from .mesh import MissingFileError
 
 #: Largest image side accepted (a 16k x 16k render is already 256M rays).
 MAX_SIDE = 16384

@@ -21,7 +21,7 @@ A scene description (``.json``) saves a view of a mesh::
       "name": "...", "credit": "..."          # optional text
     }
 
-Camera keys are described in :meth:`lbvh.rendering.camera.Camera.from_dict`; without a
+Camera keys are described in :meth:`lbvh.camera.Camera.from_dict`; without a
 camera the renderer frames the scene's bounds.
 """
 from __future__ import annotations
@@ -35,9 +35,9 @@ from typing import Any
 import numpy as np
 
 from .camera import Camera, read_json
-from ..data import MESHES
-from ..data import path as shipped_mesh_path
-from ..mesh import MissingFileError, as_mesh, as_vertices
+from .data import MESHES
+from .data import path as shipped_mesh_path
+from .mesh import MissingFileError, as_mesh, as_vertices
 
 MESH_SUFFIXES = {".obj", ".ply", ".stl", ".glb", ".gltf", ".off"}
 SCENE_SUFFIX = ".json"
@@ -45,7 +45,7 @@ SCENE_KEYS = ("mesh", "camera", "transforms", "name", "credit")
 
 
 @dataclass
-class Scene:
+class SceneFile:
     """A triangle mesh (``float32 (V, 3)`` vertices, ``uint32 (F, 3)`` faces) and its settings.
 
     ``camera`` is the saved view of a scene description, ``None`` for a bare mesh.
@@ -193,7 +193,7 @@ def find_scene(path: str | os.PathLike) -> Path:
     return file
 
 
-def load_scene(path: str | os.PathLike) -> Scene:
+def load_scene(path: str | os.PathLike) -> SceneFile:
     """Load a mesh file (see :data:`MESH_SUFFIXES`), a ``.json`` scene description,
     or a shipped mesh by name (:func:`find_scene`; a file of that name wins).
 
@@ -209,10 +209,10 @@ def load_scene(path: str | os.PathLike) -> Scene:
         return load_scene_description(path)
     v, f, structure = _load(path)
     # a file placing several meshes keeps its structure (lbvh.build makes instances of it)
-    return Scene(v, f, name=path.stem, extras={"instances": structure} if structure else {})
+    return SceneFile(v, f, name=path.stem, extras={"instances": structure} if structure else {})
 
 
-def load_scene_description(path: str | os.PathLike) -> Scene:
+def load_scene_description(path: str | os.PathLike) -> SceneFile:
     """Load a ``.json`` scene description (format in the module docstring)."""
     path = Path(path)
     _require_file(path)
@@ -224,7 +224,7 @@ def load_scene_description(path: str | os.PathLike) -> Scene:
         raise ValueError(message if message.startswith(str(path)) else f"{path}: {message}") from None
 
 
-def _scene_from_dict(data: Any, path: Path) -> Scene:
+def _scene_from_dict(data: Any, path: Path) -> SceneFile:
     if not isinstance(data, dict):
         raise ValueError("a scene description is a JSON object with a \"mesh\" key")
     unknown = sorted(set(data) - set(SCENE_KEYS))
@@ -244,7 +244,7 @@ def _scene_from_dict(data: Any, path: Path) -> Scene:
     extras = {"mesh_path": str(mesh_path), "transform": matrix}
     if "credit" in data:
         extras["credit"] = str(data["credit"])
-    return Scene(v, f, name=str(data.get("name", path.stem)), extras=extras, camera=camera)
+    return SceneFile(v, f, name=str(data.get("name", path.stem)), extras=extras, camera=camera)
 
 
 # -- transforms ---------------------------------------------------------------

@@ -7,7 +7,7 @@ import pytest
 import lbvh
 from conftest import shipped_mesh
 from lbvh.layout import make_nodes, node_depths
-from lbvh.verification.quality import epo_estimate, memory_bytes, sah_cost, tree_quality
+from lbvh.metrics.quality import epo_estimate, memory_bytes, sah_cost, tree_quality
 
 
 def _hand_made():
