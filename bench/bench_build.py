@@ -184,7 +184,7 @@ def run_build(ctx: dev.Context, case: Case, vbuf: cl.Buffer, fbuf: cl.Buffer,
     with ctx.lock:
         bvh = lbvh.BVH(mesh, build_tree(ctx, mesh, options))
     if samples is not None:
-        rep = bvh.build_report
+        rep = bvh.tree.report
         for phase in PHASES:
             samples.add(f"phase_{phase}", rep.phase_seconds[phase])
         samples.add("build_device", rep.device_seconds)
@@ -197,7 +197,7 @@ def tree_figures(bvh: lbvh.BVH) -> dict:
     try:
         bvh.validate()
     except Exception as exc:
-        raise SystemExit(f"INVALID TREE ({bvh.num_prims:,} triangles): {exc}") from exc
+        raise SystemExit(f"INVALID TREE ({bvh.mesh.num_prims:,} triangles): {exc}") from exc
     rep = bvh.report()
     out = {"depth": rep.depth, "mean_leaf_depth": rep.mean_leaf_depth,
            "duplicate_codes": rep.duplicate_codes, "num_leaves": rep.num_leaves,
@@ -255,13 +255,13 @@ def time_our_sort(ctx: dev.Context, keys: np.ndarray, key_bits: int,
             samples.add("our_sort_wall", wall)
             samples.add("our_sort_device", dev.event_seconds(result.events))
         order = dev.from_device(ctx, result.values, np.uint32, (n,))
-        mem.free(kbuf, vbuf, result.keys, result.values, to_pool=True)
+        mem.free(result.keys, result.values, to_pool=True)   # the sort gave back the rest
     return order
 
 
 def _sort_and_finish(ctx: dev.Context, mem: dev.MemoryTracker, kbuf: cl.Buffer, vbuf: cl.Buffer,
                      n: int, key_bits: int):
-    result = radix_sort(ctx, mem, kbuf, vbuf, n, key_bits, free_inputs=False)
+    result = radix_sort(ctx, mem, kbuf, vbuf, n, key_bits)
     ctx.queue.finish()
     return result
 

@@ -187,8 +187,8 @@ def world_boxes(scene: lbvh.Scene) -> tuple[np.ndarray, np.ndarray]:
     """``float64 (I, 3)`` each instance's world box (its mesh's root box transformed),
     grown by a millionth of the scene's extent (a conservative test of which boxes a
     ray crosses)."""
-    lo = np.stack([m.lower[m.root] for m in scene.meshes]).astype(np.float64)
-    hi = np.stack([m.upper[m.root] for m in scene.meshes]).astype(np.float64)
+    lo = np.stack([m.nodes["lower"][m.root] for m in scene.meshes]).astype(np.float64)
+    hi = np.stack([m.nodes["upper"][m.root] for m in scene.meshes]).astype(np.float64)
     bits = np.array([[(c >> k) & 1 for k in range(3)] for c in range(8)], bool)
     corners = np.where(bits[None], hi[:, None], lo[:, None])            # (meshes, 8, 3)
     t = scene.transforms
@@ -386,7 +386,7 @@ def sample_agreement(scene: lbvh.Scene, o: np.ndarray, d: np.ndarray, size: tupl
                      limit: int, progress: common.Progress) -> dict:
     """The scene against a flattened copy of the instances the sample's rays cross."""
     lo, hi = world_boxes(scene)
-    per = np.array([scene.meshes[m].num_prims for m in scene.mesh_of], np.int64)
+    per = np.array([scene.meshes[m].mesh.num_prims for m in scene.mesh_of], np.int64)
     centres = list(TILE_CENTRES)
     while True:
         rays = tile_rays(size, tuple(centres))
@@ -508,7 +508,7 @@ def bench_count(count: int, v: np.ndarray, f: np.ndarray, bvh: lbvh.BVH, ctx: de
             "rows": grid.rows, "spacing": grid.spacing}, "camera": camera.as_dict(),
             "rays": len(o), "flattened": skip is None, "flattened_skipped": skip,
             "build": build, "rows": rows, "agreement": agreement,
-            "top_nodes": int(scene.top.num_nodes)}
+            "top_nodes": int(scene.top.tree.num_nodes)}
 
 
 def bench_parts(ctx: dev.Context, args: argparse.Namespace, progress: common.Progress,

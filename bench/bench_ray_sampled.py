@@ -124,7 +124,7 @@ def bench_scene(scene, ctx: dev.Context, samples, repeats: int, build_repeats: i
         bvh = tree["bvh"]
         row = {"tree": name, "sample": tree.get("sample"),
                "build_seconds": tree["build_seconds"], "build_samples": tree["build_samples"],
-               "sah_cost": lbvh.sah_cost(bvh), "num_nodes": bvh.num_nodes}
+               "sah_cost": lbvh.sah_cost(bvh), "num_nodes": bvh.tree.num_nodes}
         for kind, (ro, rd) in rays.items():
             ratios = [a / b for a, b in zip(times[name][kind], times["sah"][kind])]
             got = bvh.intersect(ro, rd).t

@@ -215,7 +215,7 @@ def ao_rays(bvh: lbvh.BVH, hits: lbvh.queries.traverse.Hits, directions: np.ndar
         reach[0] = float(tmax)
         return np.zeros(len(origins), bool)
 
-    ambient_occlusion(record, bvh.vertices, bvh.faces, hits.prim, hits.u, hits.v, directions,
+    ambient_occlusion(record, bvh.vertices, bvh.faces, (hits.prim, hits.u, hits.v), directions,
                       samples, seed=seed)
     if not batches:
         empty = np.zeros((0, 3), np.float32)
@@ -307,7 +307,7 @@ class OurKernel:
     def trace(self, rays: RaySet) -> tuple[None, float]:
         _, device_rays, hit_buf, flag_buf = self._on_device(rays)
         out = traverse.trace_buffers(self.bvh.query_data, device_rays, any_hit=not rays.closest,
-                                     hits=hit_buf, flags=flag_buf)
+                                     outputs=traverse.HitBuffers(hit_buf, flag_buf))
         return None, dev.event_seconds(out.kernels)   # the packets' kernel and the single-ray walk
 
     def counters(self, rays: RaySet) -> tuple[float, float] | None:

@@ -38,7 +38,7 @@ list; tests/test_layers.py checks it folder by folder):
 ``cli``                  the ``lbvh`` command
 =======================  ============================================================
 """
-from . import data
+from . import data, layout
 from .api import build, build_parts, build_scene, load
 from .builders.options import (CollapseOptions, LBVHOptions, SAHOptions, SBVHOptions,
                                SplitOptions)
@@ -48,6 +48,7 @@ from .scene import Scene
 from .device import CONTEXT_CHECKS, DeviceError
 from .queries.all_hits import AllHits
 from .queries.closest import Closest
+from .queries.options import QueryOptions
 from .queries.overlap import Overlaps
 from .queries.traverse import Hits
 from .camera import Camera
@@ -64,6 +65,6 @@ if _self_test not in CONTEXT_CHECKS:
     CONTEXT_CHECKS.append(_self_test)
 
 __all__ = ["build", "build_parts", "build_scene", "load", "BVH", "Scene", "Hits", "AllHits", "Closest", "Overlaps", "LBVHOptions",
-           "SAHOptions", "SplitOptions", "SBVHOptions", "CollapseOptions", "RaySample",
+           "SAHOptions", "SplitOptions", "SBVHOptions", "CollapseOptions", "QueryOptions", "RaySample",
            "render", "Camera", "load_scene", "sah_cost", "tree_quality", "BVHValidationError",
-           "DeviceError", "data", "__version__"]
+           "DeviceError", "data", "layout", "__version__"]

@@ -28,26 +28,14 @@ from .files import load_mesh
 from .scene import Scene
 from .tree import Mesh
 
-
-class _Default:
-    """An option the caller did not give: the options class's documented default applies."""
-
-    def __repr__(self) -> str:
-        return "<default>"
-
-
-DEFAULT = _Default()
+#: The options objects ``lbvh.build(options=...)`` takes, one per builder.
+BuildOptions = LBVHOptions | SAHOptions | SplitOptions | SBVHOptions
 
 
 def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: Any = None,
           collapse: bool | CollapseOptions = False,
-          options: LBVHOptions | SAHOptions | SplitOptions | SBVHOptions | None = None,
-          key_bits: int | str | _Default = DEFAULT,
-          auto_duplicate_fraction: float | _Default = DEFAULT,
-          treelet_rounds: int | _Default = DEFAULT, treelet_leaves: int | _Default = DEFAULT,
-          treelet_min_leaves: int | _Default = DEFAULT, c_node: float | _Default = DEFAULT,
-          c_tri: float | _Default = DEFAULT, max_leaf_size: int | _Default = DEFAULT,
-          progress: bool | None = None, **unknown: Any) -> BVH:
+          options: BuildOptions | None = None, progress: bool | None = None,
+          **fields: Any) -> BVH:
     """Build a BVH over a triangle mesh: the device LBVH, or the serial SAH reference.
 
     Args:
@@ -65,22 +53,22 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
         collapse: ``"lbvh"`` only: ``True`` or a :class:`lbvh.CollapseOptions`: after the
             build, merge subtrees into leaves where the SAH says testing their triangles
             is cheaper (:mod:`lbvh.builders.collapse`).
-        options: the builder's options as data, :class:`lbvh.LBVHOptions` or
-            :class:`lbvh.SAHOptions` (defaults documented there).
+        options: the builder's options as data, :class:`lbvh.LBVHOptions`,
+            :class:`lbvh.SAHOptions`... (defaults documented there).
         progress: a progress bar on stderr for the long builds (the SAH reference
             over 200K triangles or more): ``None`` (default) when stderr is a
             terminal, ``True`` or ``False`` to force it (:mod:`lbvh.progress`).
-        key_bits: a field of ``LBVHOptions`` as a keyword (30, 63 or ``"auto"``), as
-            are ``auto_duplicate_fraction``, ``treelet_rounds``, ``treelet_leaves`` and
-            ``treelet_min_leaves``; not given, the documented default.
-        c_node: a field of ``SAHOptions`` (``"sah"``) or, with ``collapse=True``, of
-            ``CollapseOptions``, as are ``c_tri`` and ``max_leaf_size``;
-            ``max_leaf_size`` alone: of ``SplitOptions`` (``"median"``,
-            ``"midpoint"``); not given, the default.
-            ``rays`` (an ``(origins, directions)`` pair or :class:`lbvh.RaySample`),
-            ``ray_prior``, ``ray_candidates`` (``"sah"``): splits costed by a sample
-            of the rays the tree is for (see :class:`lbvh.SAHOptions`).
-        unknown: any other name is refused with a ``ValueError`` naming it.
+        fields: the fields of the builder's options as keywords, each not given
+            keeping its documented default: ``key_bits`` (30, 63 or ``"auto"``),
+            ``auto_duplicate_fraction``, ``treelet_rounds``, ``treelet_leaves`` and
+            ``treelet_min_leaves`` of ``LBVHOptions``; ``c_node``, ``c_tri`` and
+            ``max_leaf_size`` of ``SAHOptions`` (``"sah"``) or, with ``collapse=True``,
+            of ``CollapseOptions``; ``max_leaf_size`` alone: of ``SplitOptions``
+            (``"median"``, ``"midpoint"``); ``rays`` (an ``(origins, directions)``
+            pair or :class:`lbvh.RaySample`), ``ray_prior``, ``ray_candidates``
+            (``"sah"``): splits costed by a sample of the rays the tree is for (see
+            :class:`lbvh.SAHOptions`). Any other name is refused with a ``ValueError``
+            naming it.
 
     Returns:
         :class:`lbvh.BVH` whose buffers stay on the device. ``bvh.report()``
@@ -91,12 +79,6 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
         ValueError: bad mesh (NaN/inf, out-of-range indices, non-triangles, empty,
             wrong shape or dtype) or bad option; nothing is built.
     """
-    given = {"key_bits": key_bits, "auto_duplicate_fraction": auto_duplicate_fraction,
-             "treelet_rounds": treelet_rounds, "treelet_leaves": treelet_leaves,
-             "treelet_min_leaves": treelet_min_leaves,
-             "c_node": c_node, "c_tri": c_tri,
-             "max_leaf_size": max_leaf_size}
-    fields = {**{k: v for k, v in given.items() if v is not DEFAULT}, **unknown}
     build_options, collapse_options = options_from(builder, collapse, fields, options)
     if faces is None and (is_trimesh_scene(vertices) or isinstance(vertices, (list, tuple))):
         return build_scene(vertices, builder=builder, device=device, collapse=collapse,

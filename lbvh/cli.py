@@ -221,7 +221,7 @@ def _info_scene(args: argparse.Namespace, scene) -> int:
         for m in scene.meshes:
             m.validate()
         scene.top.validate()
-    meshes = [{"triangles": m.num_prims, "nodes": m.num_nodes, "builder": m.builder,
+    meshes = [{"triangles": m.mesh.num_prims, "nodes": m.tree.num_nodes, "builder": m.tree.builder,
                "depth": m.report().depth} for m in scene.meshes]
     summary = {"scene": _scene_name(args.scene), "instances": scene.num_instances,
                "meshes": meshes, "triangles_in_world": scene.num_triangles,
@@ -510,7 +510,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     else:
         report = bvh.report()
         device_time = f" (device {report.device_seconds * 1e3:.1f} ms)" if report.device_seconds else ""
-        print(f"scene:     {_scene_name(args.scene)}: {bvh.num_prims:,} triangles")
+        print(f"scene:     {_scene_name(args.scene)}: {bvh.mesh.num_prims:,} triangles")
         built = f"depth {report.depth}"
     print(f"camera:    {camera_source}: {describe_camera(camera)}")
     print(f"device:    {bvh.ctx.name}")

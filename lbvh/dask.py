@@ -88,7 +88,8 @@ def intersect(target: BVH | Scene, origins: Any, directions: Any, tmin: float = 
         origins, directions: ``(N, 3)`` dask arrays (or arrays dask takes); one block
             is one query on a worker.
         tmin, tmax: scalars, as for :meth:`lbvh.BVH.intersect`.
-        options: keywords of ``target.intersect`` (``triangle_test``, ...).
+        options: keywords of ``target.intersect``: ``options=`` a
+            :class:`lbvh.QueryOptions` or its fields (``triangle_test``, ...).
 
     Returns:
         :class:`DaskHits`.
@@ -110,7 +111,7 @@ def _occluded_block(o: np.ndarray, d: np.ndarray, target: Any, tmin: float, tmax
 def occluded(target: BVH | Scene, origins: Any, directions: Any, tmin: float = 0.0,
              tmax: float = np.inf, **options: Any) -> da.Array:
     """Whether each ray hits anything in ``[tmin, tmax]``: a lazy ``bool`` dask array
-    (arguments as :func:`intersect`)."""
+    (arguments as :func:`intersect`; ``options``: those of ``target.occluded``)."""
     o, d = _rays(target, origins, directions)
     shared = dask.delayed(target, pure=True)
     return da.map_blocks(_occluded_block, o, d, shared, float(tmin), float(tmax), options,

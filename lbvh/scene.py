@@ -44,10 +44,10 @@ from .layout import NODE_DTYPE, is_leaf
 from .mesh import real_array
 from .queries.closest import check_points
 from .queries.instance_closest import SceneClosest, closest_scene_points
-from .queries.instance_hits import DEFAULT_BATCH, SceneAllHits, all_scene_hits, count_scene_hits
+from .queries.instance_hits import SceneAllHits, all_scene_hits, count_scene_hits
 from .queries.instances import (NODE_CHUNKS, ROOT_BITS, SceneBuffers, SceneHits, intersect_scene,
                                 node_chunks, placement_rows)
-from .queries.rays import InvalidRays
+from .queries.options import QueryOptions, query_options
 from .tree import Mesh
 
 __all__ = ["Scene", "check_transforms"]
@@ -180,7 +180,7 @@ class Scene:
         nodes, orders, verts, slot_faces, roots = [], [], [], [], []
         node_base = slot_base = vertex_base = 0
         depth = 0
-        chunks = node_chunks([bvh.num_nodes for bvh in self.meshes], chunk_nodes(self.ctx))
+        chunks = node_chunks([bvh.tree.num_nodes for bvh in self.meshes], chunk_nodes(self.ctx))
         previous = 0
         for bvh, chunk in zip(self.meshes, chunks):
             if chunk != previous:   # a new chunk: its nodes numbered from 0
@@ -197,13 +197,13 @@ class Scene:
             verts.append(bvh.vertices)
             roots.append((chunk << ROOT_BITS) | (node_base + bvh.root))
             depth = max(depth, bvh.query_data.traversal_depth())
-            node_base += bvh.num_nodes
-            slot_base += bvh.num_prims
+            node_base += bvh.tree.num_nodes
+            slot_base += bvh.mesh.num_prims
             vertex_base += len(bvh.vertices)
         up = self.ctx.memory.upload
         self._chunks = [up(np.concatenate([n for n, c in zip(nodes, chunks) if c == k]))
                         for k in range(chunks[-1] + 1)]
-        self._num_nodes = int(sum(bvh.num_nodes for bvh in self.meshes))
+        self._num_nodes = int(sum(bvh.tree.num_nodes for bvh in self.meshes))
         self._prim_order = up(np.concatenate(orders).astype(np.int32))
         self._vertices = up(np.concatenate(verts))
         self._slot_faces = up(np.concatenate(slot_faces))
@@ -229,8 +229,8 @@ class Scene:
         inv = np.linalg.inv(a)
         inverse = np.concatenate([inv.reshape(-1, 9), -np.einsum("ijk,ik->ij", inv, b)], axis=1)
         roots = [m.root for m in self.meshes]
-        lo = np.stack([m.lower[r] for m, r in zip(self.meshes, roots)]).astype(np.float64)
-        hi = np.stack([m.upper[r] for m, r in zip(self.meshes, roots)]).astype(np.float64)
+        lo = np.stack([m.nodes["lower"][r] for m, r in zip(self.meshes, roots)]).astype(np.float64)
+        hi = np.stack([m.nodes["upper"][r] for m, r in zip(self.meshes, roots)]).astype(np.float64)
         corners = np.stack([np.where(np.array([(c >> k) & 1 for k in range(3)], bool), hi, lo)
                             for c in range(8)], axis=1)          # (meshes, 8, 3)
         world = np.einsum("ijk,imk->imj", a, corners[self.mesh_of]) + b[:, None, :]
@@ -255,7 +255,8 @@ class Scene:
         return SceneBuffers(self.top.tree, self._inverse, self._inst_root, nodes,
                             self._num_nodes, self._prim_order, self._vertices, self._slot_faces,
                             max(self._mesh_depth, self.top.query_data.traversal_depth()),
-                            not any(m.tree.clipped_leaves for m in self.meshes), self._placements)
+                            not any(m.tree.clipped_leaves for m in self.meshes), self._placements,
+                            self.ids, self.mesh_of)
 
     # -- what it holds -------------------------------------------------------------
     @property
@@ -269,7 +270,7 @@ class Scene:
     @property
     def num_triangles(self) -> int:
         """Triangles in world space: every instance's, counted once per instance."""
-        return int(sum(self.meshes[m].num_prims for m in self.mesh_of))
+        return int(sum(self.meshes[m].mesh.num_prims for m in self.mesh_of))
 
     @dev.serialised
     def set_transforms(self, ids: Any, transforms: Any) -> "Scene":
@@ -302,7 +303,7 @@ class Scene:
             t = self._transforms[i]
             verts.append(mesh.vertices.astype(np.float64) @ t[:, :3].T + t[:, 3])
             faces.append(mesh.faces.astype(np.int64) + base)
-            owner.append(np.full(mesh.num_prims, i, np.int32))
+            owner.append(np.full(len(mesh.faces), i, np.int32))
             base += len(mesh.vertices)
         v = np.concatenate(verts).astype(np.float32)
         f, who = np.concatenate(faces).astype(np.uint32), np.concatenate(owner)
@@ -319,56 +320,55 @@ class Scene:
 
     # -- ray queries ---------------------------------------------------------------
     def intersect(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
-                  triangle_test: str = "watertight", counters: bool = False,
-                  batch_size: int = 1 << 20, invalid_rays: InvalidRays = "raise",
-                  order: str = "ordered") -> SceneHits:
+                  options: QueryOptions | None = None, **fields: Any) -> SceneHits:
         """Closest hit of each ray in ``[tmin, tmax]``: :class:`SceneHits` (arguments as
-        :meth:`lbvh.BVH.intersect`'s; ``order``: ``"ordered"`` only, the scene kernel
-        has no global order)."""
-        if order != "ordered":
-            raise ValueError(f"order: {order!r}; a scene's traversal is 'ordered' only")
+        :meth:`lbvh.BVH.intersect`'s; ``options``: the fields of :class:`lbvh.QueryOptions`
+        but for ``stack_size``, ``order`` ``"ordered"`` only: the scene kernel has no
+        global order)."""
+        opts = query_options("scene_intersect", options, fields)
+        if opts.order != "ordered":
+            raise ValueError(f"order: {opts.order!r}; a scene's traversal is 'ordered' only")
         with self.ctx.lock:
-            return intersect_scene(self.ctx, self._buffers(), self.ids, self.mesh_of, origins,
-                                   directions, tmin, tmax, triangle_test=triangle_test,
-                                   counters=counters, batch_size=batch_size,
-                                   invalid_rays=invalid_rays)
+            return intersect_scene(self.ctx, self._buffers(), origins, directions, tmin, tmax,
+                                   options=opts)
 
     def occluded(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
-                 triangle_test: str = "watertight", batch_size: int = 1 << 20,
-                 return_hits: bool = False, invalid_rays: InvalidRays = "raise"
-                 ) -> np.ndarray | SceneHits:
+                 return_hits: bool = False, options: QueryOptions | None = None,
+                 **fields: Any) -> np.ndarray | SceneHits:
         """Whether each ray hits anything in ``[tmin, tmax]`` (``bool (N,)``), or with
-        ``return_hits`` the :class:`SceneHits` of the hit found (not the closest)."""
+        ``return_hits`` the :class:`SceneHits` of the hit found (not the closest);
+        ``options``: ``invalid_rays``, ``triangle_test`` and ``batch_size`` of
+        :class:`lbvh.QueryOptions`."""
+        opts = query_options("scene_occluded", options, fields)
         with self.ctx.lock:
-            hits = intersect_scene(self.ctx, self._buffers(), self.ids, self.mesh_of, origins,
-                                   directions, tmin, tmax, any_hit=True,
-                                   triangle_test=triangle_test, batch_size=batch_size,
-                                   invalid_rays=invalid_rays)
+            hits = intersect_scene(self.ctx, self._buffers(), origins, directions, tmin, tmax,
+                                   any_hit=True, options=opts)
         return hits if return_hits else hits.mask
 
     def count_hits(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
-                   batch_size: int = DEFAULT_BATCH,
-                   invalid_rays: InvalidRays = "raise") -> np.ndarray:
+                   options: QueryOptions | None = None, **fields: Any) -> np.ndarray:
         """``int32 (N,)``: how many times each ray crosses the scene in ``[tmin, tmax]``,
         a crossing through an edge or a vertex shared by triangles of a mesh once
-        (arguments as :meth:`lbvh.BVH.count_hits`'s; a stack overflow raises
-        ``RuntimeError``); see :mod:`lbvh.queries.instance_hits`."""
+        (arguments as :meth:`lbvh.BVH.count_hits`'s, ``options`` its ``invalid_rays`` and
+        ``batch_size``; a stack overflow raises ``RuntimeError``); see
+        :mod:`lbvh.queries.instance_hits`."""
+        opts = query_options("hits", options, fields)
         with self.ctx.lock:
             return count_scene_hits(self.ctx, self._buffers(), origins, directions, tmin, tmax,
-                                    batch_size=batch_size, invalid_rays=invalid_rays)
+                                    options=opts)
 
     def all_hits(self, origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.inf, *,
-                 max_hits: int | None = None, batch_size: int = DEFAULT_BATCH,
-                 invalid_rays: InvalidRays = "raise") -> SceneAllHits:
+                 max_hits: int | None = None, options: QueryOptions | None = None,
+                 **fields: Any) -> SceneAllHits:
         """Every hit of each ray in ``[tmin, tmax]``, nearest first, as flat arrays with
         per-ray offsets (at most ``max_hits`` per ray, the nearest), each with its
         instance (:class:`lbvh.queries.instance_hits.SceneAllHits`: ``instance``, ``id``,
         ``mesh`` beside ``t``, ``prim``, ``u``, ``v``; arguments as
-        :meth:`lbvh.BVH.all_hits`'s)."""
+        :meth:`lbvh.BVH.all_hits`'s, ``options`` its ``invalid_rays`` and ``batch_size``)."""
+        opts = query_options("hits", options, fields)
         with self.ctx.lock:
-            return all_scene_hits(self.ctx, self._buffers(), self.ids, self.mesh_of, origins,
-                                  directions, tmin, tmax, max_hits=max_hits,
-                                  batch_size=batch_size, invalid_rays=invalid_rays)
+            return all_scene_hits(self.ctx, self._buffers(), origins, directions, tmin, tmax,
+                                  max_hits=max_hits, options=opts)
 
     def flat_faces(self, instance: Any, prim: Any) -> np.ndarray:
         """``int64``: the faces of :meth:`flattened` that hits ``(instance, prim)`` name
@@ -376,7 +376,7 @@ class Scene:
         instance, prim = np.asarray(instance), np.asarray(prim)
         if self.face_ids is not None:
             return np.where(instance >= 0, prim, -1).astype(np.int64)
-        counts = np.array([self.meshes[m].num_prims for m in self.mesh_of], np.int64)
+        counts = np.array([self.meshes[m].mesh.num_prims for m in self.mesh_of], np.int64)
         base = np.concatenate([[0], np.cumsum(counts)[:-1]])
         return np.where(instance >= 0, base[np.maximum(instance, 0)] + prim, -1)
 

@@ -16,7 +16,7 @@ from functools import cached_property
 import numpy as np
 import pyopencl as cl
 
-from .device import Context
+from .device import Context, from_device
 from .layout import NODE_DTYPE
 from .report import BuildReport
 
@@ -103,6 +103,19 @@ class Tree:
         """The device buffers this tree holds (its owner gives them back)."""
         own = [self.nodes, self.parent, self.prim_order]
         return own + ([self.leaf_nodes_buf] if self.leaf_nodes_buf is not None else [])
+
+    def read(self, name: str) -> np.ndarray:
+        """A host copy of one of the tree's arrays, read from the device: ``"nodes"``
+        (``NODE_DTYPE (num_nodes,)``), ``"parent"`` (``int32 (num_nodes,)``, -1 at
+        the root) or ``"prim_order"`` (``int32 (num_prims,)``)."""
+        shapes = {"nodes": (self.nodes, NODE_DTYPE, self.num_nodes),
+                  "parent": (self.parent, np.int32, self.num_nodes),
+                  "prim_order": (self.prim_order, np.int32, self.num_prims)}
+        if name not in shapes:
+            raise ValueError(f"name: {name!r}; a tree holds {', '.join(map(repr, shapes))}")
+        buf, dtype, n = shapes[name]
+        with self.ctx.lock:
+            return from_device(self.ctx, buf, dtype, (n,))
 
     def root_record(self) -> np.ndarray:
         """The root's node record (:data:`lbvh.layout.NODE_DTYPE`), read from the device."""

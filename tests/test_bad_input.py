@@ -680,7 +680,7 @@ def test_a_failed_refit_changes_nothing_then_a_good_one_works():
     assert bvh.nodes.tobytes() == before and np.array_equal(bvh.vertices, env.v)
     bvh.refit(env.v * 3)
     bvh.validate()
-    assert np.array_equal(bvh.lower[bvh.root], env.v.min(axis=0) * 3)
+    assert np.array_equal(bvh.nodes["lower"][bvh.root], env.v.min(axis=0) * 3)
 
 
 # -- the table in docs/pages/bad-input.md ----------------------------------------------------------

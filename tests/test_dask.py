@@ -27,7 +27,7 @@ def test_pickled_trees_answer_as_the_originals():
     bvh = lbvh.build(*shipped_mesh("teapot.obj"), collapse=True)
     o, d = rays(bvh.vertices, 500, 1)
     again = pickle.loads(pickle.dumps(bvh))
-    assert again.builder == bvh.builder and np.array_equal(again.nodes, bvh.nodes)
+    assert again.tree.builder == bvh.tree.builder and np.array_equal(again.nodes, bvh.nodes)
     got, want = again.intersect(o, d), bvh.intersect(o, d)
     assert np.array_equal(got.t, want.t) and np.array_equal(got.prim, want.prim)
     scene = lbvh.Scene([bvh], [0, 0], np.stack([np.eye(3, 4), np.eye(3, 4) * 2]), ids=[7, 9])

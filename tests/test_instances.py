@@ -48,7 +48,7 @@ def assert_like_flattened(scene: lbvh.Scene, o: np.ndarray, d: np.ndarray, tmin=
     # hit or miss: the same but for rays within rounding of a silhouette edge
     assert (got.mask == hit).mean() >= 0.999
     both = np.flatnonzero(got.mask & hit)
-    starts = np.concatenate([[0], np.cumsum([scene.meshes[m].num_prims for m in scene.mesh_of])])
+    starts = np.concatenate([[0], np.cumsum([scene.meshes[m].mesh.num_prims for m in scene.mesh_of])])
     inst = owner[ref.prim[both]]
     local = ref.prim[both] - starts[inst]
     same = (got.instance[both] == inst) & (got.prim[both] == local)

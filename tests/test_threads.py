@@ -23,6 +23,7 @@ SCRIPT = r"""
 import hashlib, random, sys, threading, time
 import numpy as np
 import lbvh
+from lbvh.layout import children_of, is_leaf
 import pyopencl.array as cl_array
 from lbvh.camera import frame_bounds
 sys.path.insert(0, "tests")
@@ -55,7 +56,7 @@ def digest(*arrays):
 
 def tree(b):
     n = b.nodes
-    return digest(*(n[name] for name in n.dtype.names), b.parent, b.prim_order)
+    return digest(*(n[name] for name in n.dtype.names), b.tree.read("parent"), b.prim_order)
 
 JOBS = {
     "build": lambda: tree(lbvh.build(v, f)),
@@ -71,7 +72,7 @@ JOBS = {
     "occluded": lambda: digest(shared.occluded(o, d, tmax=0.5)),
     "refit": lambda: (lambda b: tree(b) + digest(b.intersect(o * 2, d * 2).t))(
         lbvh.build(v, f).refit(v * 2)),
-    "views": lambda: (lambda b: digest(b.lower, b.upper, b.children, b.is_leaf))(lbvh.build(v, f)),
+    "views": lambda: (lambda b: digest(b.nodes["lower"], b.nodes["upper"], children_of(b.nodes), is_leaf(b.nodes)))(lbvh.build(v, f)),
     "render": lambda: digest(lbvh.render(shared, camera, "normals").image),
     "render ao": lambda: digest(lbvh.render(shared, camera, "ao", ao_samples=2).image),
     "closest points": lambda: digest(*(lambda c: (c.distance, c.prim, c.u, c.v))(

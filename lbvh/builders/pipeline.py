@@ -113,11 +113,10 @@ def build_tree(ctx: dev.Context, mesh: Mesh, options: LBVHOptions = LBVHOptions(
         events["emit"] += evs
         mem.free(result.keys)
         prim_order = result.values
-        events["refit"] += refit_from_boxes(ctx, boxes, prim_order, nodes, parent, None, n,
-                                            2 * n - 1, karras_ranges=True)
-        mem.free(boxes)
         tree = Tree(ctx, nodes, parent, prim_order, root=0, num_nodes=2 * n - 1, num_prims=n,
                     builder="lbvh")
+        events["refit"] += refit_from_boxes(tree, boxes, None, karras_ranges=True)
+        mem.free(boxes)
         tree, evs = restructure(tree, options.treelet_rounds, mem,
                                 leaves=options.treelet_leaves,
                                 min_leaves=options.treelet_min_leaves)

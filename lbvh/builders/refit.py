@@ -11,6 +11,7 @@ import pyopencl as cl
 
 from .bounds import triangle_bounds, triangle_boxes_numpy
 from ..device import Context, MemoryTracker, run
+from ..tree import Mesh, Tree
 from ..layout import children_of, is_leaf, node_depths, prim_range_of
 
 KERNEL_FILE = "refit.cl"
@@ -22,15 +23,14 @@ def clear_arrivals(ctx: Context, arrivals: cl.Buffer, count: int) -> cl.Event:
     return run(ctx, KERNEL_FILE, "clear_arrivals", clear, arrivals, count, clear.per_item)
 
 
-def refit_from_boxes(ctx: Context, boxes: cl.Buffer, prim_order: cl.Buffer, nodes: cl.Buffer,
-                     parent: cl.Buffer, arrivals: cl.Buffer | None, num_prims: int,
-                     num_nodes: int, leaf_nodes: cl.Buffer | None = None,
-                     num_leaves: int | None = None, karras_ranges: bool = False,
-                     per_item: int | None = None) -> list[cl.Event]:
-    """Recompute every node box in place from the triangle boxes (``2 * num_prims`` float4).
+def refit_from_boxes(tree: Tree, boxes: cl.Buffer, arrivals: cl.Buffer | None, *,
+                     karras_ranges: bool = False, per_item: int | None = None) -> list[cl.Event]:
+    """Recompute every node box of ``tree`` in place from the triangle boxes (``2 *
+    num_prims`` float4).
 
-    Without ``leaf_nodes`` the leaves are nodes ``num_prims - 1 ..`` (Karras
-    numbering); ``arrivals`` is scratch of ``4 * num_nodes`` bytes.
+    A tree without a leaf list (:meth:`lbvh.tree.Tree.leaf_walks`) has its leaves at
+    nodes ``num_prims - 1 ..`` (Karras numbering); ``arrivals`` is scratch of ``4 *
+    num_nodes`` bytes.
     ``karras_ranges``: the tree comes straight from emit.cl, whose internal
     nodes still hold the far end of their range where lower.x goes and a zero
     where lower.y goes; the walks then skip the atomics of nodes whose range
@@ -40,8 +40,9 @@ def refit_from_boxes(ctx: Context, boxes: cl.Buffer, prim_order: cl.Buffer, node
     (``emit_hierarchy(write_leaves=False)``).
     ``per_item`` forces the chunk length (tests); by default the launch picks it.
     """
-    if num_leaves is None:
-        num_leaves = num_prims if leaf_nodes is None else leaf_nodes.size // 4
+    ctx, nodes, parent, prim_order = tree.ctx, tree.nodes, tree.parent, tree.prim_order
+    leaf_nodes, _, num_leaves = tree.leaf_walks()
+    num_prims, num_nodes = tree.num_prims, tree.num_nodes
     if karras_ranges and leaf_nodes is not None:
         raise ValueError("karras_ranges needs the Karras numbering of the leaves, not a leaf list")
     events = []
@@ -60,15 +61,15 @@ def refit_from_boxes(ctx: Context, boxes: cl.Buffer, prim_order: cl.Buffer, node
     return events
 
 
-def refit_boxes(ctx: Context, vertices: cl.Buffer, faces: cl.Buffer, prim_order: cl.Buffer,
-                nodes: cl.Buffer, parent: cl.Buffer, num_prims: int, num_nodes: int,
-                leaf_nodes: cl.Buffer | None = None) -> list[cl.Event]:
-    """Refit after the vertices moved: triangle boxes (stage 1), then the bottom-up pass."""
+def refit_boxes(mesh: Mesh, tree: Tree) -> list[cl.Event]:
+    """Refit ``tree`` after the vertices moved to ``mesh``'s: triangle boxes (stage 1),
+    then the bottom-up pass."""
+    ctx = tree.ctx
     mem = MemoryTracker(ctx)
-    boxes, centroid_box, events = triangle_bounds(ctx, mem, vertices, faces, num_prims)
-    arrivals = mem.alloc(4 * num_nodes, scratch=True)
-    events += refit_from_boxes(ctx, boxes, prim_order, nodes, parent, arrivals, num_prims,
-                               num_nodes, leaf_nodes)
+    boxes, centroid_box, events = triangle_bounds(ctx, mem, mesh.vertices_buf, mesh.faces_buf,
+                                                  tree.num_prims)
+    arrivals = mem.alloc(4 * tree.num_nodes, scratch=True)
+    events += refit_from_boxes(tree, boxes, arrivals)
     ctx.queue.finish()
     mem.free(boxes, centroid_box, arrivals)
     mem.close()

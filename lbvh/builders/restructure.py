@@ -21,7 +21,7 @@ import dataclasses
 import numpy as np
 import pyopencl as cl
 
-from ..device import Context, Scope, run
+from ..device import Scope, run
 from ..tree import Tree
 from ..layout import NODE_DTYPE
 from ..metrics.cost import C_NODE, C_TRI, box_scale, scaled_half_area
@@ -39,19 +39,20 @@ TREELET_SIZES = range(3, TREELET_LEAVES + 1)
 TREELET_MIN_LEAVES = 14
 
 
-def restructure_treelets(ctx: Context, nodes: cl.Buffer, parent: cl.Buffer, cost: cl.Buffer,
-                         arrivals: cl.Buffer, sizes: cl.Buffer, num_nodes: int, root: int,
-                         rounds: int, leaf_first: int, num_leaves: int,
-                         leaf_nodes: cl.Buffer | None = None, c_node: float = C_NODE,
-                         c_tri: float = C_TRI, leaves: int = TREELET_LEAVES,
+def restructure_treelets(tree: Tree, scratch: tuple[cl.Buffer, cl.Buffer, cl.Buffer],
+                         rounds: int, *, c_node: float = C_NODE, c_tri: float = C_TRI,
+                         leaves: int = TREELET_LEAVES,
                          min_leaves: int = TREELET_MIN_LEAVES) -> list[cl.Event]:
-    """``rounds`` bottom-up restructuring passes over a tree whose boxes are final.
+    """``rounds`` bottom-up restructuring passes over ``tree``, whose boxes are final.
 
-    ``cost`` (``float32`` per node), ``arrivals`` and ``sizes`` (``int32`` per
-    node) are scratch. Leaves are ``leaf_first ..`` (Karras numbering) or
-    ``leaf_nodes``; ``leaves``: leaves per treelet (:data:`TREELET_SIZES`);
-    ``min_leaves``: see :func:`round_min_leaves`.
+    ``scratch`` is ``cost`` (``float32`` per node), ``arrivals`` and ``sizes``
+    (``int32`` per node). The leaves are the tree's (:meth:`lbvh.tree.Tree.leaf_walks`);
+    ``leaves``: leaves per treelet (:data:`TREELET_SIZES`); ``min_leaves``: see
+    :func:`round_min_leaves`.
     """
+    ctx, nodes, parent, num_nodes, root = tree.ctx, tree.nodes, tree.parent, tree.num_nodes, tree.root
+    cost, arrivals, sizes = scratch
+    leaf_nodes, leaf_first, num_leaves = tree.leaf_walks()
     events = []
     launch = ctx.walk_launch(num_leaves, min_per_item=256)
     use_list = leaf_nodes is not None
@@ -87,10 +88,8 @@ def restructure(tree: Tree, rounds: int, mem: Scope, c_node: float = C_NODE,
     cost = mem.alloc(4 * tree.num_nodes, scratch=True)
     arrivals = mem.alloc(4 * tree.num_nodes, scratch=True)
     sizes = mem.alloc(4 * tree.num_nodes, scratch=True)
-    leaf_list, leaf_first, num_leaves = tree.leaf_walks()
-    events = restructure_treelets(tree.ctx, tree.nodes, tree.parent, cost, arrivals, sizes,
-                                  tree.num_nodes, tree.root, rounds, leaf_first, num_leaves,
-                                  leaf_list, c_node, c_tri, leaves, min_leaves)
+    events = restructure_treelets(tree, (cost, arrivals, sizes), rounds, c_node=c_node,
+                                  c_tri=c_tri, leaves=leaves, min_leaves=min_leaves)
     mem.free(cost, arrivals, sizes)
     size = "" if leaves == TREELET_LEAVES else f"-{leaves}"
     return dataclasses.replace(tree, builder=f"{tree.builder}+treelets{rounds}{size}"), events

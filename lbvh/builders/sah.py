@@ -44,11 +44,11 @@ from .. import device as dev
 from ..layout import NODE_DTYPE, parents_of
 from ..tree import Mesh, Tree, upload_tree
 from .options import SAHOptions
-from ..metrics.cost import C_NODE, C_TRI, MAX_LEAF_SIZE, box_area
+from ..metrics.cost import box_area
 from ..progress import bar as progress_bar
 from ..report import BuildReport
 from .bounds import triangle_boxes_numpy
-from .ray_sampled import RayLists, RaySample
+from .ray_sampled import RayLists
 
 
 #: Meshes from this size on show a progress bar by default (a few seconds of build).
@@ -207,24 +207,26 @@ def _stable_partition(order: np.ndarray, sweep: _Sweep, split_seg: np.ndarray,
     is_left[left_prims] = False
 
 
-def sah_tree(lo: np.ndarray, hi: np.ndarray, c_node: float = C_NODE, c_tri: float = C_TRI,
-             max_leaf_size: int = MAX_LEAF_SIZE, progress: Any = None,
-             rays: RaySample | None = None, ray_prior: float = 16.0, ray_candidates: int = 32
-             ) -> tuple[np.ndarray, np.ndarray]:
+def sah_tree(lo: np.ndarray, hi: np.ndarray, options: SAHOptions = SAHOptions(),
+             progress: Any = None) -> tuple[np.ndarray, np.ndarray]:
     """Build the SAH tree over primitive boxes.
 
     Args:
         lo, hi: ``float32 (F, 3)`` primitive boxes, ``F >= 1``.
+        options: the cost constants ``c_node``, ``c_tri``, ``max_leaf_size`` and, with
+            ``rays`` (a traced :class:`~lbvh.builders.ray_sampled.RaySample`), split
+            probabilities from those rays (:mod:`lbvh.builders.ray_sampled`, with
+            ``ray_prior`` and ``ray_candidates``) instead of areas; no rays: the SAH.
         progress: a bar (:func:`lbvh.progress.bar`) advanced by the primitives
             placed in leaves, level by level; or None.
-        rays: a traced :class:`~lbvh.builders.ray_sampled.RaySample`: split
-            probabilities from these rays (:mod:`lbvh.builders.ray_sampled`, with
-            ``ray_prior`` and ``ray_candidates``) instead of areas; None: the SAH.
 
     Returns:
         ``nodes`` (``NODE_DTYPE``, root 0, numbered level by level) and
         ``prim_order`` (``int32 (F,)``); leaves hold contiguous slots.
     """
+    c_node, c_tri = float(options.c_node), float(options.c_tri)
+    max_leaf_size, rays = int(options.max_leaf_size), options.rays
+    ray_prior, ray_candidates = float(options.ray_prior), int(options.ray_candidates)
     lo = np.ascontiguousarray(lo, np.float32)
     hi = np.ascontiguousarray(hi, np.float32)
     num_prims = len(lo)
@@ -292,9 +294,7 @@ def build_tree(ctx: dev.Context, mesh: Mesh, options: SAHOptions = SAHOptions(),
     if progress is None and mesh.num_prims < PROGRESS_TRIANGLES:
         progress = False
     with progress_bar(mesh.num_prims, "SAH build", "tri", progress) as placed:
-        nodes, prim_order = sah_tree(lo, hi, float(options.c_node), float(options.c_tri),
-                                     int(options.max_leaf_size), placed, options.rays,
-                                     float(options.ray_prior), int(options.ray_candidates))
+        nodes, prim_order = sah_tree(lo, hi, options, placed)
     wall = time.perf_counter() - t0
     report = BuildReport(device=ctx.name, builder="sah", num_triangles=mesh.num_prims,
                          wall_seconds=wall, input_bytes=mesh.vertices.nbytes + mesh.faces.nbytes)

@@ -42,7 +42,7 @@ from ..tree import Mesh, Tree, upload_tree
 from ..layout import is_leaf
 from .bounds import round_outward
 from ..metrics.cost import box_area
-from .options import SBVHOptions
+from .options import SAHOptions, SBVHOptions
 from .sah import sah_tree
 
 #: Meshes from this size on show a progress bar by default.
@@ -185,7 +185,8 @@ def sbvh_tree(vertices: np.ndarray, faces: np.ndarray, options: SBVHOptions = SB
         if n <= options.object_below or area <= options.alpha * root_area:
             # No spatial split worth its cost below (a node's overlap is at most its area):
             # the rest of the subtree is the SAH reference's, over the references' boxes.
-            sub, order = sah_tree(*round_outward(lo, hi), c_node, c_tri, int(options.max_leaf_size))
+            sub, order = sah_tree(*round_outward(lo, hi), SAHOptions(
+                c_node=c_node, c_tri=c_tri, max_leaf_size=int(options.max_leaf_size)))
             base = len(records)
             inner = ~is_leaf(sub)
             sub["a"] = np.where(inner, sub["a"] + base - 1, sub["a"] + used[0])

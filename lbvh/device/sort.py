@@ -108,13 +108,13 @@ def expected_mask(key_bits: int) -> int:
 
 
 def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buffer, n: int,
-               key_bits: int, free_inputs: bool = True, radix_bits: int | None = None,
+               key_bits: int, *, radix_bits: int | None = None,
                mask: VaryingBits | None = None) -> SortResult:
     """Sort pairs stably by key. Returns the buffers holding the result (inputs or new ones).
 
     ``keys`` and ``values`` must be writable: the passes use them as scratch.
-    The sort's own buffers that do not hold the result are always given back;
-    with ``free_inputs`` so are the inputs where they do not hold it. ``radix_bits`` overrides the device's digit width
+    The sort's own buffers and the inputs that do not hold the result are given
+    back to ``mem``. ``radix_bits`` overrides the device's digit width
     (:func:`radix_bits_for`). ``mask``: where the caller has queued the
     varying-bits read already, what :func:`enqueue_varying_bits` returned;
     else the read is queued here.
@@ -149,8 +149,7 @@ def radix_sort(ctx: Context, mem: MemoryTracker, keys: cl.Buffer, values: cl.Buf
             result = SortResult(keys, values, 0, events)
     returned = {id(result.keys), id(result.values)}
     mem.free(*[buf for buf in sort.own if id(buf) not in returned])
-    if free_inputs:
-        mem.free(*[buf for buf in (keys, values) if id(buf) not in returned])
+    mem.free(*[buf for buf in (keys, values) if id(buf) not in returned])
     return result
 
 

@@ -170,9 +170,9 @@ def tree_quality(bvh: Any, c_node: float = C_NODE, c_tri: float = C_TRI, *, epo:
     (nodes + parent links + prim_order) and, with ``epo``, ``epo``,
     ``epo_stderr`` and ``epo_samples`` (see :func:`epo_estimate`).
     """
-    stats = tree_statistics(bvh.nodes, bvh.parent, bvh.root)
+    stats = tree_statistics(bvh.nodes, bvh.tree.read("parent"), bvh.root)
     out = {"sah_cost": sah_cost(bvh, c_node, c_tri), "c_node": float(c_node), "c_tri": float(c_tri),
-           **stats, "memory_bytes": memory_bytes(bvh.num_nodes, bvh.tree.num_prims)}
+           **stats, "memory_bytes": memory_bytes(bvh.tree.num_nodes, bvh.tree.num_prims)}
     if epo:
         value, err = epo_estimate(bvh, c_node, c_tri, samples=epo_samples)
         out.update(epo=value, epo_stderr=err, epo_samples=int(epo_samples))

@@ -36,7 +36,8 @@ import numpy as np
 import pyopencl as cl
 
 from .. import device as dev
-from .rays import InvalidRays, Rays, check_invalid_rays, check_rays, is_device_array
+from .rays import Rays, check_invalid_rays, check_rays, is_device_array
+from .options import QueryOptions, check_positive, query_options
 from .target import QueryTarget, query_target
 from .wide import lane_defines
 from .traverse import FLAG_OVERFLOW, FLAG_VISIT_LIMIT, slab_pad, stack_bucket, stack_need
@@ -125,10 +126,7 @@ def _check_max_hits(max_hits: Any) -> int | None:
 
 
 def _check_batch(batch_size: Any) -> int:
-    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
-            or batch_size < 1:
-        raise ValueError(f"batch_size: {batch_size!r}; expected a positive integer")
-    return int(batch_size)
+    return check_positive("batch_size", batch_size)
 
 
 def _rays(origins: Any, directions: Any, tmin: Any, tmax: Any, invalid_rays: str) -> Rays:
@@ -141,22 +139,22 @@ def _rays(origins: Any, directions: Any, tmin: Any, tmax: Any, invalid_rays: str
 
 @dev.serialised
 def count_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
-               tmax: Any = np.inf, *, signed: bool = False, batch_size: int = DEFAULT_BATCH,
-               invalid_rays: InvalidRays = "raise") -> np.ndarray:
+               tmax: Any = np.inf, *, signed: bool = False, options: QueryOptions | None = None,
+               **fields: Any) -> np.ndarray:
     """How many times each ray crosses the mesh in ``[tmin, tmax]``.
 
     Args:
         target: an :class:`lbvh.BVH`.
-        origins, directions, tmin, tmax, invalid_rays: as for
-            :func:`lbvh.queries.traverse.intersect`; an invalid ray with
-            ``invalid_rays="miss"`` counts 0.
+        origins, directions, tmin, tmax: as for :func:`lbvh.queries.traverse.intersect`.
+        options: a :class:`lbvh.QueryOptions`, or its fields ``invalid_rays`` (an
+            invalid ray with ``invalid_rays="miss"`` counts 0) and ``batch_size`` (rays
+            per kernel launch; default :data:`DEFAULT_BATCH`) as keywords.
         signed: count each crossing +1 where the ray leaves a triangle by its front
             (``n . d > 0``, ``n = (b - a) x (c - a)``) and -1 where it enters by it:
             from ``tmin = 0`` to ``tmax = inf``, the winding number of the origin
             for a closed mesh (each edge, by its corners' coordinates, used as often
             one way as the other: :func:`lbvh.mesh.is_closed`); kernels/every_hit.h
             ``SIGNED``.
-        batch_size: rays per kernel launch.
 
     Returns:
         ``int32 (N,)``.
@@ -167,10 +165,11 @@ def count_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0
         RuntimeError: the traversal stack overflowed (a tree deeper than 768 levels).
     """
     target = query_target(target)   # a BVH gives its query data
-    batch = _check_batch(batch_size)
+    opts = query_options("hits", options, fields)
+    batch = opts.batch(DEFAULT_BATCH)
     if not isinstance(signed, (bool, np.bool_)):
         raise ValueError(f"signed: {signed!r}; expected True or False")
-    rays = _rays(origins, directions, tmin, tmax, invalid_rays)
+    rays = _rays(origins, directions, tmin, tmax, opts.invalid_rays)
     if target.tree.clipped_leaves:   # a triangle in several leaves: count it once
         if signed:
             raise ValueError("count_hits(signed=True): this tree has spatial splits "
@@ -186,17 +185,17 @@ def count_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0
 @dev.serialised
 def all_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
              tmax: Any = np.inf, *, max_hits: int | None = None,
-             batch_size: int = DEFAULT_BATCH, invalid_rays: InvalidRays = "raise") -> AllHits:
+             options: QueryOptions | None = None, **fields: Any) -> AllHits:
     """Every hit of each ray in ``[tmin, tmax]``, nearest first.
 
     Args:
         target: an :class:`lbvh.BVH`.
-        origins, directions, tmin, tmax, invalid_rays: as for
-            :func:`lbvh.queries.traverse.intersect`; an invalid ray with
-            ``invalid_rays="miss"`` has no hits.
+        origins, directions, tmin, tmax: as for :func:`lbvh.queries.traverse.intersect`.
         max_hits: keep at most this many hits per ray, the nearest (``None``: all);
             ``AllHits.total`` still counts all of them.
-        batch_size: rays per kernel launch.
+        options: a :class:`lbvh.QueryOptions`, or its fields ``invalid_rays`` (an
+            invalid ray with ``invalid_rays="miss"`` has no hits) and ``batch_size``
+            (rays per kernel launch; default :data:`DEFAULT_BATCH`) as keywords.
 
     Returns:
         :class:`AllHits`.
@@ -208,9 +207,9 @@ def all_hits(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0
     """
     target = query_target(target)   # a BVH gives its query data
     cap = _check_max_hits(max_hits)
-    batch = _check_batch(batch_size)
-    rays = _rays(origins, directions, tmin, tmax, invalid_rays)
-    return _collect(target, rays, batch, cap)
+    opts = query_options("hits", options, fields)
+    rays = _rays(origins, directions, tmin, tmax, opts.invalid_rays)
+    return _collect(target, rays, opts.batch(DEFAULT_BATCH), cap)
 
 
 def _collect(target: QueryTarget, rays: Rays, batch: int, cap: int | None) -> AllHits:
@@ -286,14 +285,14 @@ def _run(target: QueryTarget, rays: Rays, batch: int, cap: int | None,
     wide = target.wide_records()
     sign = {"SIGNED": 1} if signed else {}
     if wide.packed and work is None:   # the counters count binary nodes (segment_work)
-        return run_passes(target.ctx, KERNEL_FILE, "all_hits", wide_head(target),
-                          stack_need(target), rays, batch, cap,
-                          defines={**wide_defines(target.ctx, wide.width), **sign},
-                          streams=stream_records(target.ctx, wide.count))
+        walk = HitWalk(KERNEL_FILE, "all_hits", wide_head(target), stack_need(target),
+                       defines={**wide_defines(target.ctx, wide.width), **sign},
+                       streams=stream_records(target.ctx, wide.count))
+        return run_passes(target.ctx, walk, rays, batch, cap)
     head = (tree.nodes, tree.nodes, tree.prim_order, target.mesh.vertices_buf,
             target.slot_faces(), tree.root, tree.root, 0, tree.num_nodes)
-    return run_passes(target.ctx, KERNEL_FILE, "all_hits", head, target.traversal_depth(), rays,
-                      batch, cap, work=work, defines=sign)
+    walk = HitWalk(KERNEL_FILE, "all_hits", head, target.traversal_depth(), defines=sign)
+    return run_passes(target.ctx, walk, rays, batch, cap, work=work)
 
 
 def wide_defines(ctx: dev.Context, width: int) -> dict[str, int]:
@@ -407,20 +406,31 @@ SLOT_QUANTILE = 0.97
 SLOT_RANGE = (4, 64)
 
 
-def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, depth: int,
-               rays: Rays, batch: int, cap: int | None, *, instances: bool = False,
-               work: np.ndarray | None = None, defines: dict[str, int] | None = None,
-               streams: int = 0):
-    """Count (``cap`` None) or collect (``cap`` -1: all, else at most ``cap`` per ray)
-    the hits of every good ray, batch by batch, with a kernel of all_hits.cl's arguments
-    (``head``: those before the rays; kernels/instance_hits.cl has them too, with an
-    instance column after the triangle's when ``instances``). ``depth``: the deepest
-    tree walked (the stack's size). Returns ``(total, flags)`` and, when collecting,
-    ``(t, prim, u, v)`` (and ``instance``) in ray order (each ray's sorted by the kernel).
-    ``work`` (``int32 (N, 4)``, counting only, all_hits.cl) receives its counters;
+@dataclass(frozen=True)
+class HitWalk:
+    """The kernel :func:`run_passes` walks the rays with: ``kernel`` of ``kernel_file``,
+    one of all_hits.cl's arguments (``head``: those before the rays;
+    kernels/instance_hits.cl has them too, with an instance column after the triangle's
+    when ``instances``). ``depth``: the deepest tree walked (the stack's size).
     ``defines``: more of the kernel's compile-time choices (all_hits.cl's ``WIDE``).
     ``streams``: the wide records' count where the passes walk the rays as streams
-    (``stream_hits_kernel``, :func:`stream_records`), else 0.
+    (``stream_hits_kernel``, :func:`stream_records`), else 0."""
+    kernel_file: str
+    kernel: str
+    head: tuple
+    depth: int
+    instances: bool = False
+    defines: dict | None = None
+    streams: int = 0
+
+
+def run_passes(ctx: dev.Context, walk: HitWalk, rays: Rays, batch: int, cap: int | None, *,
+               work: np.ndarray | None = None):
+    """Count (``cap`` None) or collect (``cap`` -1: all, else at most ``cap`` per ray)
+    the hits of every good ray, batch by batch, with the kernel of ``walk``. Returns
+    ``(total, flags)`` and, when collecting, ``(t, prim, u, v)`` (and ``instance``) in
+    ray order (each ray's sorted by the kernel). ``work`` (``int32 (N, 4)``, counting
+    only, all_hits.cl) receives its counters.
 
     Collecting: one pass gives each ray :func:`first_slots` slots and counts its hits;
     the rays with more hits to keep than slots are traced again in a pass that has room
@@ -432,10 +442,12 @@ def run_passes(ctx: dev.Context, kernel_file: str, kernel: str, head: tuple, dep
     good = np.arange(n) if rays.invalid is None else np.flatnonzero(~rays.invalid)
     if rays.invalid is not None:
         rays = rays.take(good)
-    base = {"STACK_SIZE": stack_bucket(depth + 1), "SLAB_PAD": slab_pad(ctx), **(defines or {})}
+    base = {"STACK_SIZE": stack_bucket(walk.depth + 1), "SLAB_PAD": slab_pad(ctx),
+            **(walk.defines or {})}
     # the kernel's columns: t, u, v, prim (and instance); returned as t, prim, u, v, ...
-    dtypes = (np.float32, np.float32, np.float32, np.int32) + ((np.int32,) if instances else ())
-    pass_ = _Pass(ctx, kernel_file, kernel, head, base, dtypes, streams)
+    dtypes = ((np.float32, np.float32, np.float32, np.int32)
+              + ((np.int32,) if walk.instances else ()))
+    pass_ = _Pass(ctx, walk.kernel_file, walk.kernel, walk.head, base, dtypes, walk.streams)
     lo, hi, stride = rays.kernel_intervals()
     m_all = len(rays)
     for start in range(0, m_all, batch):

@@ -67,9 +67,26 @@ class Closest:
         return len(self.distance)
 
 
+@dataclass(frozen=True)
+class CheckedPoints:
+    """Query points checked once at the public boundary (:func:`checked_points`):
+    ``array`` ``float32 (N, 3)`` C-contiguous, finite; ``least`` and ``largest``
+    coordinate. The point queries take it as it is, without checking again."""
+    array: np.ndarray
+    least: float
+    largest: float
+
+
+def checked_points(points: Any) -> CheckedPoints:
+    """``points`` checked (:func:`check_points_range`) into a :class:`CheckedPoints`."""
+    return CheckedPoints(*check_points_range(points))
+
+
 def check_points_range(points: Any) -> tuple[np.ndarray, float, float]:
     """:func:`check_points`, with the least and the largest coordinate of any point
     (over every axis; 0, 0 for no point), which its check computes anyway."""
+    if isinstance(points, CheckedPoints):
+        return points.array, points.least, points.largest
     given = real_array("points", points)
     if given.ndim != 2 or given.shape[1] != 3:
         raise ValueError(f"points: shape {given.shape}, expected (N, 3)")

@@ -148,9 +148,7 @@ class QueryData:
             write_records(self.tree, self._wide)
         copy = self._winding
         if copy is not None:
-            tree = copy.tree
-            refit_boxes(self.ctx, mesh.vertices_buf, mesh.faces_buf, tree.prim_order, tree.nodes,
-                        tree.parent, tree.num_prims, tree.num_nodes, tree.leaf_walks()[0])
+            refit_boxes(mesh, copy.tree)
             copy.refit(mesh)
 
     # -- giving back one cache's buffers ----------------------------------------------

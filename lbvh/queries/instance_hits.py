@@ -23,10 +23,11 @@ from typing import Any
 import numpy as np
 
 from .. import device as dev
-from .all_hits import (DEFAULT_BATCH, AllHits, _check_batch, _check_max_hits, _rays, assemble,
+from .all_hits import (DEFAULT_BATCH, AllHits, HitWalk, _check_max_hits, _rays, assemble,
                        raise_on_overflow, run_passes)
 from .instances import SceneBuffers
-from .rays import InvalidRays, Rays
+from .options import QueryOptions
+from .rays import Rays
 
 KERNEL_FILE = "instance_hits.cl"
 
@@ -54,8 +55,8 @@ def _run(ctx: dev.Context, buffers: SceneBuffers, rays: Rays, batch: int, cap: i
     head = (top.nodes, top.prim_order, top.root, top.num_nodes, buffers.inverse,
             buffers.inst_root, *buffers.nodes, buffers.num_nodes, buffers.prim_order,
             buffers.vertices, buffers.slot_faces)
-    return run_passes(ctx, KERNEL_FILE, "instance_hits", head, buffers.depth, rays, batch, cap,
-                      instances=True)
+    walk = HitWalk(KERNEL_FILE, "instance_hits", head, buffers.depth, instances=True)
+    return run_passes(ctx, walk, rays, batch, cap)
 
 
 def _collect(ctx: dev.Context, buffers: SceneBuffers, rays: Rays, batch: int,
@@ -68,13 +69,13 @@ def _collect(ctx: dev.Context, buffers: SceneBuffers, rays: Rays, batch: int,
 
 
 def count_scene_hits(ctx: dev.Context, buffers: SceneBuffers, origins: Any, directions: Any,
-                     tmin: Any = 0.0, tmax: Any = np.inf, *, batch_size: int = DEFAULT_BATCH,
-                     invalid_rays: InvalidRays = "raise") -> np.ndarray:
+                     tmin: Any = 0.0, tmax: Any = np.inf, *,
+                     options: QueryOptions = QueryOptions()) -> np.ndarray:
     """``int32 (N,)``: how many times each ray crosses the scene in ``[tmin, tmax]``
     (arguments and errors as :func:`lbvh.queries.all_hits.count_hits`'s: a stack
     overflow raises ``RuntimeError``). The caller holds ``ctx.lock``."""
-    batch = _check_batch(batch_size)
-    rays = _rays(origins, directions, tmin, tmax, invalid_rays)
+    batch = options.batch(DEFAULT_BATCH)
+    rays = _rays(origins, directions, tmin, tmax, options.invalid_rays)
     if not buffers.exact_leaves:   # a triangle in several leaves: count it once
         fields = _collect(ctx, buffers, rays, batch, None)
         raise_on_overflow(fields[6].astype(np.int32), "count_hits")
@@ -84,17 +85,16 @@ def count_scene_hits(ctx: dev.Context, buffers: SceneBuffers, origins: Any, dire
     return counts.astype(np.int32)
 
 
-def all_scene_hits(ctx: dev.Context, buffers: SceneBuffers, ids: np.ndarray,
-                   mesh_of: np.ndarray, origins: Any, directions: Any, tmin: Any = 0.0,
-                   tmax: Any = np.inf, *, max_hits: int | None = None,
-                   batch_size: int = DEFAULT_BATCH,
-                   invalid_rays: InvalidRays = "raise") -> SceneAllHits:
+def all_scene_hits(ctx: dev.Context, buffers: SceneBuffers, origins: Any, directions: Any,
+                   tmin: Any = 0.0, tmax: Any = np.inf, *, max_hits: int | None = None,
+                   options: QueryOptions = QueryOptions()) -> SceneAllHits:
     """Every hit of each ray through the scene in ``[tmin, tmax]``, nearest first
     (arguments as :func:`lbvh.queries.all_hits.all_hits`'s; a ray whose stack overflowed
     is flagged in ``overflow``). The caller holds ``ctx.lock``."""
     cap = _check_max_hits(max_hits)
-    batch = _check_batch(batch_size)
-    rays = _rays(origins, directions, tmin, tmax, invalid_rays)
+    batch = options.batch(DEFAULT_BATCH)
+    rays = _rays(origins, directions, tmin, tmax, options.invalid_rays)
+    ids, mesh_of = buffers.ids, buffers.mesh_of
     *fields, inst = _collect(ctx, buffers, rays, batch, cap)
     return SceneAllHits(*fields, instance=inst, id=ids[inst].astype(np.int64),
                         mesh=mesh_of[inst].astype(np.int32))

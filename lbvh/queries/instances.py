@@ -26,8 +26,9 @@ import pyopencl as cl
 
 from .. import device as dev
 from ..tree import Tree
-from .rays import InvalidRays, check_invalid_rays, check_rays, is_device_array
-from .traverse import TRIANGLE_TESTS, kernel_defines, stack_bucket
+from .options import QueryOptions
+from .rays import check_rays, is_device_array
+from .traverse import DEFAULT_BATCH, kernel_defines, stack_bucket
 
 KERNEL_FILE = "instances.cl"
 
@@ -56,7 +57,8 @@ class SceneBuffers:
     row by row, then b) rounded to float32, then the float32 roundings of what they
     left (with doubles the kernel adds the two: the float64 transform to about
     2^-48); the same 24 of its inverse; the square of A's least singular value,
-    rounded down (:func:`placement_rows`).
+    rounded down (:func:`placement_rows`). ``ids``, ``mesh_of``: ``(I,)`` host arrays,
+    each instance's id and mesh, which the answers name.
     """
     top: Tree
     inverse: cl.Buffer
@@ -69,6 +71,8 @@ class SceneBuffers:
     depth: int
     exact_leaves: bool = True
     placements: cl.Buffer | None = None
+    ids: np.ndarray | None = None
+    mesh_of: np.ndarray | None = None
 
 
 def placement_rows(transforms: np.ndarray) -> np.ndarray:
@@ -156,21 +160,16 @@ class SceneHits:
         return len(self.t)
 
 
-def intersect_scene(ctx: dev.Context, buffers: SceneBuffers, ids: np.ndarray,
-                    mesh_of: np.ndarray, origins: Any, directions: Any, tmin: Any = 0.0,
-                    tmax: Any = np.inf, *, any_hit: bool = False,
-                    triangle_test: str = "watertight", counters: bool = False,
-                    batch_size: int = 1 << 20, invalid_rays: InvalidRays = "raise") -> SceneHits:
+def intersect_scene(ctx: dev.Context, buffers: SceneBuffers, origins: Any, directions: Any,
+                    tmin: Any = 0.0, tmax: Any = np.inf, *, any_hit: bool = False,
+                    options: QueryOptions = QueryOptions()) -> SceneHits:
     """The closest hit (or with ``any_hit`` a hit) of each ray through the scene whose
-    device data is ``buffers`` (:class:`lbvh.Scene` calls this; arguments as
-    :func:`lbvh.queries.traverse.intersect`'s). The caller holds ``ctx.lock``."""
-    check_invalid_rays(invalid_rays)
-    if triangle_test not in TRIANGLE_TESTS:
-        raise ValueError(f"triangle_test: {triangle_test!r}; expected one of "
-                         f"{', '.join(TRIANGLE_TESTS)}")
-    if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
-            or batch_size < 1:
-        raise ValueError(f"batch_size: {batch_size!r}; expected a positive integer")
+    device data is ``buffers`` (:class:`lbvh.Scene` calls this with checked ``options``:
+    its ``invalid_rays``, ``triangle_test``, ``counters`` and ``batch_size``; arguments
+    as :func:`lbvh.queries.traverse.intersect`'s). The caller holds ``ctx.lock``."""
+    triangle_test, counters = options.triangle_test, options.counters
+    invalid_rays, batch_size = options.invalid_rays, options.batch(DEFAULT_BATCH)
+    ids, mesh_of = buffers.ids, buffers.mesh_of
     origins, directions, tmin, tmax = (x.get() if is_device_array(x) else x
                                        for x in (origins, directions, tmin, tmax))
     rays = check_rays(origins, directions, tmin, tmax, invalid_rays=invalid_rays)

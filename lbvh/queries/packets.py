@@ -59,10 +59,10 @@ def packet_defines(defines: dict, any_hit: bool, ordered: bool) -> dict[str, int
 
 
 def trace_packets(target: QueryTarget, rays: DeviceRays, *, any_hit: bool, defines: dict,
-                  hits: cl.Buffer, flags: cl.Buffer, order: cl.Buffer | None,
-                  deferred: cl.Buffer, wait_for: list[cl.Event] | None = None) -> cl.Event:
-    """Trace checked rays on the device by packets into ``hits`` (four planes of
-    ``count`` float32: t, u, v, primitive bits) and ``flags`` (int32), as
+                  hits: cl.Buffer, flags: cl.Buffer, deferred: cl.Buffer) -> cl.Event:
+    """Trace checked rays on the device (in their ``order``, once ``ready``) by packets
+    into ``hits`` (four planes of ``count`` float32: t, u, v, primitive bits) and
+    ``flags`` (int32), as
     :func:`lbvh.queries.traverse.trace_buffers` does; ``defines`` are the single-ray
     kernel's (its triangle test, stack and slab pad). The packets whose rays are not
     coherent (kernels/packet_traverse.cl ``packet_coherent``) are not traced: their
@@ -71,6 +71,7 @@ def trace_packets(target: QueryTarget, rays: DeviceRays, *, any_hit: bool, defin
     event."""
     target = query_target(target)   # a BVH gives its query data
     ctx, tree = target.ctx, target.tree
+    order = rays.order
     wide = target.wide_records()
     count = int(rays.count)
     per = max(PACKET, min(RAYS_PER_ITEM, -(-count // max(1, ctx.work_items()))))
@@ -83,7 +84,7 @@ def trace_packets(target: QueryTarget, rays: DeviceRays, *, any_hit: bool, defin
                    rays.tmin, rays.tmax, rays.interval_stride,
                    order if order is not None else flags, hits, flags, deferred, count,
                    launch.per_item,
-                   defines=own, wait_for=wait_for)
+                   defines=own, wait_for=list(rays.ready))
 
 
 __all__ = ["PACKET", "PACKETS_FROM", "RAYS_PER_ITEM", "packet_defines", "packets_apply", "trace_packets"]

@@ -318,13 +318,18 @@ def check_rays(origins: Any, directions: Any, tmin: Any = 0.0, tmax: Any = np.in
 class DeviceRays:
     """Rays on the device (``count`` of them), as :func:`trace_buffers` reads them:
     ``origins``, ``directions`` float32 ``3 * count``; ``tmin``, ``tmax`` float32, one
-    per ray (``interval_stride`` 1) or one for all (``interval_stride`` 0)."""
+    per ray (``interval_stride`` 1) or one for all (``interval_stride`` 0). ``order``:
+    ``int32`` per ray, the order they are traced in (a permutation, see
+    :mod:`lbvh.queries.ray_order`; the answers stay in the rays' own slots), or None;
+    ``ready``: the events that write these buffers, which a walk waits for."""
     count: int
     origins: cl.Buffer
     directions: cl.Buffer
     tmin: cl.Buffer
     tmax: cl.Buffer
     interval_stride: int
+    order: cl.Buffer | None = None
+    ready: tuple = ()
 
     def release(self) -> None:
         """Release the buffers now (their memory counts them out)."""

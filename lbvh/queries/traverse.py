@@ -45,24 +45,26 @@ Wide records
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import pyopencl as cl
 import pyopencl.array as cl_array
 
 from .. import device as dev
-from .rays import (DEVICE_KERNEL_FILE, DeviceRays, InvalidRays, Rays, check_invalid_rays, check_rays,
+from .rays import (DEVICE_KERNEL_FILE, DeviceRays, Rays, check_rays,
                    device_array_rays, device_invalid, host_array, is_device_array,
                    mark_invalid, read_device_rays, upload_rays)
 from .exact import collinear
 from .packets import PACKETS_FROM, packets_apply, trace_packets
 from .ray_order import ray_order, worth_ordering
 from ..tree import Mesh, Tree
+from .options import NODE_ORDERS, TRIANGLE_TESTS, QueryOptions, query_options
 from .target import QueryTarget, query_target
 from .wide import lane_defines
 
@@ -84,14 +86,6 @@ FLAG_NAN_RAY = 4       # NaN in the ray (only through trace_buffers): not traced
 #: Stack sizes a program is compiled for; a tree uses the first that holds its stack_need.
 STACK_BUCKETS = (32, 64, 96, 128, 192, 256, 384, 512, 768)
 
-TRIANGLE_TESTS = {"watertight": 0, "moller": 1}
-TriangleTest = Literal["watertight", "moller"]
-
-#: The order of a closest-hit traversal: "ordered" (depth first, the nearest child
-#: first; default) or "global" (the nearest pending node of all, from a heap: Kay &
-#: Kajiya 1986). The same hits either way (up to triangles hit at the same t).
-NODE_ORDERS = {"ordered": 0, "global": 1}
-NodeOrder = Literal["ordered", "global"]
 
 #: Rays per kernel launch of the host API unless ``batch_size`` says otherwise.
 DEFAULT_BATCH = 1 << 20
@@ -437,29 +431,39 @@ def order_triangles_numpy(vertices: np.ndarray, faces: np.ndarray,
 
 # -- device-level entry -----------------------------------------------------------
 
+@dataclass
+class HitBuffers:
+    """Where :func:`trace_buffers` writes, each allocated for the call where ``None``:
+    ``hits`` (16 bytes per ray: four planes of ``count`` float32, t, u, v and the
+    primitive as int32), ``flags`` (4), ``counters`` (8, with the ``counters`` option),
+    ``scratch`` (4: the rays the packets leave to the single-ray walk)."""
+    hits: cl.Buffer | None = None
+    flags: cl.Buffer | None = None
+    counters: cl.Buffer | None = None
+    scratch: cl.Buffer | None = None
+
+
 def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = False,
-                  triangle_test: str = "watertight", counters: bool = False,
-                  stack_size: int | None = None, hits: cl.Buffer | None = None,
-                  flags: cl.Buffer | None = None, counter_buf: cl.Buffer | None = None,
-                  wait_for: list[cl.Event] | None = None, order: cl.Buffer | None = None,
-                  defines: dict[str, int | str] | None = None,
-                  node_order: str = "ordered", packets: bool | None = None,
-                  scratch: cl.Buffer | None = None) -> DeviceHits:
+                  options: QueryOptions | None = None, outputs: HitBuffers | None = None,
+                  defines: dict[str, int | str] | None = None, packets: bool | None = None,
+                  **fields: Any) -> DeviceHits:
     """Trace rays already on the device; nothing is read back.
 
-    ``rays`` (see :func:`upload_rays`) must have passed :func:`check_rays`.
-    Output buffers are allocated unless given: ``hits`` (16 bytes per ray: four
-    planes of ``count`` float32, t, u, v and the primitive as int32), ``flags`` (4),
-    ``counter_buf`` (8, with ``counters``). ``order`` (int32 per ray, a
-    permutation, see :mod:`lbvh.ray_order`) sets the order the rays are traced
-    in; the answers stay in the rays' own slots; ``node_order`` the order nodes are
-    visited in (:data:`NODE_ORDERS`). ``defines`` adds or overrides
-    -D defines of kernels/traverse.cl (tests, experiments). ``packets``: trace by
-    packets of 8 rays (:mod:`lbvh.queries.packets`: the same answers bit for bit),
-    ``None`` where :func:`lbvh.queries.packets.packets_apply` says so; ``scratch`` (4
-    bytes per ray) holds the rays the packets leave to the single-ray walk, allocated
-    for the call unless given.
+    ``rays`` (see :func:`upload_rays`) must have passed :func:`check_rays`; their
+    ``order`` and ``ready`` events are honoured. ``options`` (or its fields as
+    keywords): ``triangle_test``, ``counters``, ``stack_size`` and ``order`` (the
+    order nodes are visited in, :data:`NODE_ORDERS`) of :class:`lbvh.QueryOptions`.
+    ``outputs``: the buffers to write (:class:`HitBuffers`). ``defines`` adds or
+    overrides -D defines of kernels/traverse.cl (tests, experiments). ``packets``:
+    trace by packets of 8 rays (:mod:`lbvh.queries.packets`: the same answers bit for
+    bit), ``None`` where :func:`lbvh.queries.packets.packets_apply` says so.
     """
+    opts = query_options("trace", options, fields)
+    triangle_test, counters, node_order = opts.triangle_test, opts.counters, opts.order
+    stack_size = opts.stack_size
+    out = outputs or HitBuffers()
+    hits, flags, counter_buf, scratch = out.hits, out.flags, out.counters, out.scratch
+    order, wait_for = rays.order, list(rays.ready)
     target = query_target(target)   # a BVH gives its query data
     ctx, tree = target.ctx, target.tree
     if stack_size is None:
@@ -488,7 +492,7 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
         # `deferred`, go through the single-ray walk next (lbvh.queries.packets)
         deferred = scratch if scratch is not None else ctx.memory.alloc(4 * count)
         ev = trace_packets(target, rays, any_hit=any_hit, defines=all_defines, hits=hits,
-                           flags=flags, order=order, deferred=deferred, wait_for=wait_for)
+                           flags=flags, deferred=deferred)
         order, wait_for, kernels = deferred, [ev], [ev]
         all_defines["RAY_ORDER"] = 1
     launch = _launch(ctx, count)
@@ -513,21 +517,13 @@ def read_hits(ctx: dev.Context, out: DeviceHits) -> np.ndarray:
 
 # -- host API ---------------------------------------------------------------------
 
-def _check_batch(batch_size: Any) -> int:
-    if not isinstance(batch_size, (int, np.integer)) or isinstance(batch_size, bool) \
-            or batch_size < 1:
-        raise ValueError(f"batch_size: {batch_size!r}; expected a positive integer")
-    return int(batch_size)
-
-
 def _trace(target: QueryTarget, origins: Any, directions: Any, tmin: Any, tmax: Any, any_hit: bool,
-           triangle_test: str, counters: bool, batch_size: int, stack_size: int | None,
-           invalid_rays: str, node_order: str = "ordered") -> Hits | DeviceHitArrays:
-    """Check the options and the rays, then trace them: host arrays in batches, pyopencl
-    arrays in place."""
-    batch_size = _check_batch(batch_size)
-    check_invalid_rays(invalid_rays)
-    kernel_defines(target.ctx, any_hit, triangle_test, counters, 1, node_order)   # the options
+           opts: QueryOptions) -> Hits | DeviceHitArrays:
+    """Trace the rays with checked options: host arrays in batches, pyopencl arrays in
+    place."""
+    triangle_test, counters, stack_size = opts.triangle_test, opts.counters, opts.stack_size
+    invalid_rays, node_order = opts.invalid_rays, opts.order
+    batch_size = opts.batch(DEFAULT_BATCH)
     if is_device_array(origins) or is_device_array(directions):
         return _trace_arrays(target, origins, directions, tmin, tmax, any_hit, triangle_test,
                              counters, stack_size, invalid_rays, node_order)
@@ -589,14 +585,16 @@ def _trace_rays(target: QueryTarget, rays: Rays, any_hit: bool, triangle_test: s
             if per_ray:
                 ups += [cl.enqueue_copy(queue, bufs["lo"], lo[start:stop], is_blocking=False),
                         cl.enqueue_copy(queue, bufs["hi"], hi[start:stop], is_blocking=False)]
-            device_rays = DeviceRays(m, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"], stride)
             order = None
             if worth_ordering(m, target.tree.num_nodes):
                 order, ups = ray_order(ctx, bufs["o"], bufs["d"], m, *target.tree.root_box())
-            result = trace_buffers(target, device_rays, any_hit=any_hit, triangle_test=triangle_test,
-                                   counters=counters, stack_size=stack_size, hits=bufs["hits"],
-                                   flags=bufs["flags"], counter_buf=bufs.get("count"),
-                                   wait_for=ups, order=order, node_order=node_order)
+            device_rays = DeviceRays(m, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"], stride,
+                                     order, tuple(ups))
+            result = trace_buffers(target, device_rays, any_hit=any_hit,
+                                   triangle_test=triangle_test, counters=counters,
+                                   stack_size=stack_size, order=node_order,
+                                   outputs=HitBuffers(bufs["hits"], bufs["flags"],
+                                                      bufs.get("count")))
             if m == n:   # one batch: the four planes are the buffer as it is, one copy
                 cl.enqueue_copy(queue, planes, bufs["hits"], wait_for=[result.event],
                                 is_blocking=False)
@@ -652,14 +650,14 @@ def _trace_in_place(target: QueryTarget, rays: Rays, any_hit: bool, triangle_tes
         out = memory.host_outputs(((4, n), np.float32), ((n,), np.int32), ((n,), np.int32),
                                   readable=True)
         planes, flag, _ = out.arrays
-        device_rays = DeviceRays(n, *bufs, stride)
         ups: list[cl.Event] = []
         if worth_ordering(n, target.tree.num_nodes):
             order, ups = ray_order(ctx, bufs[0], bufs[1], n, *target.tree.root_box())
+        device_rays = DeviceRays(n, *bufs, stride, order, tuple(ups))
         result = trace_buffers(target, device_rays, any_hit=any_hit, triangle_test=triangle_test,
-                               stack_size=stack_size, hits=out.buffers[0], flags=out.buffers[1],
-                               wait_for=ups, order=order, node_order=node_order,
-                               scratch=out.buffers[2])
+                               stack_size=stack_size, order=node_order,
+                               outputs=HitBuffers(out.buffers[0], out.buffers[1],
+                                                  scratch=out.buffers[2]))
         dev.read_host_views(ctx.queue, [(out.block_buffer, out.block)], wait_for=[result.event])
         read = True
     finally:
@@ -704,9 +702,9 @@ def _trace_arrays(target: QueryTarget, origins: Any, directions: Any, tmin: Any,
                                   *target.tree.root_box())
         wait_for += events
     if n:
-        out = trace_buffers(target, rays, any_hit=any_hit, triangle_test=triangle_test,
-                            counters=counters, stack_size=stack_size, wait_for=wait_for,
-                            order=order, node_order=node_order)
+        out = trace_buffers(target, dataclasses.replace(rays, order=order, ready=tuple(wait_for)),
+                            any_hit=any_hit, triangle_test=triangle_test, counters=counters,
+                            stack_size=stack_size, order=node_order)
     else:   # nothing to launch; the options are checked all the same
         kernel_defines(ctx, any_hit, triangle_test, counters, stack_size or 1)
         out = DeviceHits(0, ctx.memory.alloc(16), ctx.memory.alloc(4),
@@ -759,18 +757,13 @@ _ARGS_DOC = """
             on the BVH's context (``bvh.ctx.ctx``): then the rays are read and the
             results left on the device (:class:`DeviceHitArrays`).
         tmin, tmax: scalars or ``(N,)`` arrays, ``0 <= tmin <= tmax``; ``tmax`` may be ``inf``.
-        triangle_test: ``"watertight"`` (Woop 2013, default) or ``"moller"`` (Moller-Trumbore).
-        counters: also return nodes visited and triangles tested per ray.
-        batch_size: rays per kernel launch of host arrays; device memory is about 60
-            bytes per ray of a batch (pyopencl rays are traced in one launch).
-        stack_size: override the stack size chosen from the tree's depth (for tests).
-        invalid_rays: ``"raise"`` (default): a bad ray (NaN, infinite or beyond-float32
-            components, a zero-length direction, a NaN, negative or infinite ``tmin``, a
-            NaN ``tmax``, ``tmin > tmax``) raises ``ValueError`` naming the first one.
-            ``"miss"``: bad rays are not traced and come back as misses (``t = inf``,
-            ``prim = -1``, ``u = v = 0``, counters 0) with ``invalid`` set and counted in
-            ``invalid_count``; the other rays' answers are those they get alone.
-            Shapes and dtypes raise either way."""
+        options: a :class:`lbvh.QueryOptions` (``None``: the defaults), or its fields as
+            keywords: ``invalid_rays`` (``"raise"``, default, or ``"miss"``: bad rays
+            come back as misses with ``invalid`` set and counted in ``invalid_count``),
+            ``triangle_test`` (``"watertight"``, default, or ``"moller"``),
+            ``counters`` (nodes visited and triangles tested per ray), ``batch_size``
+            (rays per launch of host arrays; about 60 bytes of device memory per ray
+            of a batch), ``stack_size`` (tests){order}."""
 
 _RAISES_DOC = """
     Raises:
@@ -779,12 +772,12 @@ _RAISES_DOC = """
 """
 
 _INTERSECT_SUMMARY = "Closest hit of each ray in ``[tmin, tmax]``."
-_INTERSECT_ARGS = """
-        order: ``"ordered"`` (default): depth first, the nearest child first; ``"global"``:
-            always the nearest pending node of all (a heap, Kay & Kajiya 1986), stopping
-            when it lies beyond the closest hit. The same hits; ``counters`` show the
-            nodes each visits. A tree whose pending nodes outgrow the stack sets
-            ``overflow`` as ever."""
+_INTERSECT_ARGS = ""
+_ORDER_DOC = """, and
+            ``order``: ``"ordered"`` (default): depth first, the nearest child first;
+            ``"global"``: always the nearest pending node of all (a heap, Kay & Kajiya
+            1986), stopping when it lies beyond the closest hit. The same hits;
+            ``counters`` show the nodes each visits"""
 _INTERSECT_RETURNS = """
     Returns:
         :class:`Hits` (:class:`DeviceHitArrays` for pyopencl rays). Among triangles hit
@@ -813,7 +806,8 @@ def query_doc(which: str, *, target: bool) -> str:
     summary, extra, returns = {
         "intersect": (_INTERSECT_SUMMARY, _INTERSECT_ARGS, _INTERSECT_RETURNS),
         "occluded": (_OCCLUDED_SUMMARY, _OCCLUDED_ARGS, _OCCLUDED_RETURNS)}[which]
-    return (f"{summary}\n\n    Args:{_TARGET_DOC if target else ''}{_ARGS_DOC}{extra}\n"
+    args = _ARGS_DOC.format(order=_ORDER_DOC if which == "intersect" else "")
+    return (f"{summary}\n\n    Args:{_TARGET_DOC if target else ''}{args}{extra}\n"
             f"{returns}{_RAISES_DOC}")
 
 
@@ -828,25 +822,21 @@ def async_doc(which: str) -> str:
 
 @dev.serialised
 def intersect(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
-              tmax: Any = np.inf, *, triangle_test: TriangleTest = "watertight",
-              counters: bool = False, batch_size: int = DEFAULT_BATCH,
-              stack_size: int | None = None, invalid_rays: InvalidRays = "raise",
-              order: NodeOrder = "ordered") -> Hits | DeviceHitArrays:
+              tmax: Any = np.inf, *, options: QueryOptions | None = None,
+              **fields: Any) -> Hits | DeviceHitArrays:
     target = query_target(target)   # a BVH gives its query data
-    return _trace(target, origins, directions, tmin, tmax, False, triangle_test, counters,
-                  batch_size, stack_size, invalid_rays, order)
+    return _trace(target, origins, directions, tmin, tmax, False,
+                  query_options("intersect", options, fields))
 
 
 @dev.serialised
 def occluded(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
-             tmax: Any = np.inf, *, triangle_test: TriangleTest = "watertight",
-             counters: bool = False, batch_size: int = DEFAULT_BATCH,
-             stack_size: int | None = None, return_hits: bool = False,
-             invalid_rays: InvalidRays = "raise"
+             tmax: Any = np.inf, *, return_hits: bool = False,
+             options: QueryOptions | None = None, **fields: Any
              ) -> np.ndarray | Hits | cl_array.Array | DeviceHitArrays:
     target = query_target(target)   # a BVH gives its query data
-    hits = _trace(target, origins, directions, tmin, tmax, True, triangle_test, counters,
-                  batch_size, stack_size, invalid_rays)
+    hits = _trace(target, origins, directions, tmin, tmax, True,
+                  query_options("occluded", options, fields))
     return hits if return_hits else hits.hit
 
 
@@ -871,27 +861,20 @@ def _executor() -> ThreadPoolExecutor:
 
 
 def intersect_async(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
-                    tmax: Any = np.inf, *, triangle_test: TriangleTest = "watertight",
-                    counters: bool = False, batch_size: int = DEFAULT_BATCH,
-                    stack_size: int | None = None, invalid_rays: InvalidRays = "raise",
-                    order: NodeOrder = "ordered") -> "Future[Hits | DeviceHitArrays]":
+                    tmax: Any = np.inf, *, options: QueryOptions | None = None,
+                    **fields: Any) -> "Future[Hits | DeviceHitArrays]":
     target = query_target(target)   # a BVH gives its query data
-    return _executor().submit(intersect, target, origins, directions, tmin, tmax,
-                              triangle_test=triangle_test, counters=counters,
-                              batch_size=batch_size, stack_size=stack_size,
-                              invalid_rays=invalid_rays, order=order)
+    opts = query_options("intersect", options, fields)   # bad options raise here, at once
+    return _executor().submit(intersect, target, origins, directions, tmin, tmax, options=opts)
 
 
 def occluded_async(target: QueryTarget, origins: Any, directions: Any, tmin: Any = 0.0,
-                   tmax: Any = np.inf, *, triangle_test: TriangleTest = "watertight",
-                   counters: bool = False, batch_size: int = DEFAULT_BATCH,
-                   stack_size: int | None = None, return_hits: bool = False,
-                   invalid_rays: InvalidRays = "raise") -> "Future[Any]":
+                   tmax: Any = np.inf, *, return_hits: bool = False,
+                   options: QueryOptions | None = None, **fields: Any) -> "Future[Any]":
     target = query_target(target)   # a BVH gives its query data
+    opts = query_options("occluded", options, fields)
     return _executor().submit(occluded, target, origins, directions, tmin, tmax,
-                              triangle_test=triangle_test, counters=counters,
-                              batch_size=batch_size, stack_size=stack_size,
-                              return_hits=return_hits, invalid_rays=invalid_rays)
+                              return_hits=return_hits, options=opts)
 
 
 intersect_async.__doc__ = async_doc("intersect")

@@ -70,7 +70,7 @@ import numpy as np
 import pyopencl as cl
 
 from .. import device as dev
-from .closest import check_points, check_points_range, closest_points, walk_of
+from .closest import check_points_range, checked_points, closest_points, walk_of
 from .ray_order import MIN_POINTS, ordered_points
 from .target import QueryTarget, query_target
 from .winding_moments import (CUBIC_MONOMIALS, DEFAULT_ORDER, NODE_ERROR, ROWS_ORDER2,
@@ -324,12 +324,13 @@ def inside(target: QueryTarget, points: np.ndarray, beta: float | None = None) -
     lies within :data:`SIGN_FILTER_BOUND` of 1/2. A point past that has the sign of its
     exact ``w``, and so of the default's, wherever both walks are within their bounds."""
     target = query_target(target)   # a BVH gives its query data
+    points = checked_points(points)   # checked once: the walks below take it as it is
     if beta is not None:
         return winding_numbers(target, points, beta=beta) > 0.5
     w = winding_numbers(target, points, beta=SIGN_BETA, node_error=SIGN_NODE_ERROR)
     near = np.flatnonzero(np.abs(w - np.float32(0.5)) <= SIGN_FILTER_BOUND)
     if len(near):
-        w[near] = winding_numbers(target, points[near], beta=DEFAULT_BETA)
+        w[near] = winding_numbers(target, points.array[near], beta=DEFAULT_BETA)
     return w > 0.5
 
 
@@ -338,7 +339,7 @@ def contains(target: QueryTarget, points: Any, *, beta: float | None = None) -> 
     (:func:`winding_numbers` at ``beta``; None, the default: :data:`DEFAULT_BETA`'s
     answers, by the filter of :func:`inside`)."""
     target = query_target(target)   # a BVH gives its query data
-    return inside(target, check_points(points), beta)
+    return inside(target, checked_points(points), beta)
 
 
 def signed_distance(target: QueryTarget, points: Any, *,
@@ -346,7 +347,7 @@ def signed_distance(target: QueryTarget, points: Any, *,
     """``float32 (N,)``: the distance to the mesh (:func:`lbvh.queries.closest.closest_points`),
     negative inside (``winding > 0.5``, as :func:`contains` answers it)."""
     target = query_target(target)   # a BVH gives its query data
-    p = check_points(points)
+    p = checked_points(points)   # once, for both queries
     distance = closest_points(target, p).distance
     return np.where(inside(target, p, beta), -distance, distance)
 

@@ -232,10 +232,10 @@ def scene_diagonal(vertices: np.ndarray) -> float:
 
 
 def ambient_occlusion(occluded: Callable[[np.ndarray, np.ndarray, float], np.ndarray],
-                      vertices: np.ndarray, faces: np.ndarray, prim: np.ndarray, u: np.ndarray,
-                      v: np.ndarray, directions: np.ndarray, samples: int, *,
-                      distance: float = AO_DISTANCE, seed: int = 0) -> np.ndarray:
-    """Ambient occlusion ``float32 (N,)`` of N primary hits (0 where ``prim < 0``).
+                      vertices: np.ndarray, faces: np.ndarray, hits: tuple, directions: np.ndarray,
+                      samples: int, *, distance: float = AO_DISTANCE, seed: int = 0) -> np.ndarray:
+    """Ambient occlusion ``float32 (N,)`` of N primary hits ``hits = (prim, u, v)`` (the
+    triangle of each, -1 for a miss, and the barycentrics; 0 where ``prim < 0``).
 
     ``occluded(origins, directions, tmax)`` answers any-hit queries (float32 rays).
     Each sample pass casts one cosine-weighted ray per hit pixel from the hit point
@@ -243,6 +243,7 @@ def ambient_occlusion(occluded: Callable[[np.ndarray, np.ndarray, float], np.nda
     ``distance`` times the scene diagonal; a fixed ``seed`` makes it repeatable.
     Host memory is a few hundred bytes per hit pixel whatever ``samples`` is.
     """
+    prim, u, v = hits
     if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or samples < 1:
         raise ValueError(f"ao samples: {samples!r}, expected a whole number >= 1")
     if not (np.isfinite(distance) and distance > 0):
@@ -309,7 +310,7 @@ def render(bvh: Any, camera: Camera, mode: str = "normals", *, ao_samples: int =
     if mode in PRIMARY_ONLY_MODES:
         image = shade_primary(mode, hits.t, prim, directions, vertices, faces, w, h)
     elif mode == "ao":
-        ao = ambient_occlusion(tracer.occluded, vertices, faces, prim, hits.u, hits.v,
+        ao = ambient_occlusion(tracer.occluded, vertices, faces, (prim, hits.u, hits.v),
                                directions, ao_samples, distance=ao_distance, seed=seed)
         image = ao.reshape(h, w, 1)
     else:
@@ -340,6 +341,6 @@ def render_reference(vertices: np.ndarray, faces: np.ndarray, camera: Camera, mo
     def occluded(o: np.ndarray, d: np.ndarray, tmax: float) -> np.ndarray:
         return brute_force(vertices, faces, o, d, 0.0, tmax).hit
 
-    ao = ambient_occlusion(occluded, vertices, faces, hits.prim, hits.u, hits.v, directions,
+    ao = ambient_occlusion(occluded, vertices, faces, (hits.prim, hits.u, hits.v), directions,
                            ao_samples, distance=ao_distance, seed=seed)
     return ao.reshape(camera.height, camera.width, 1)

@@ -65,10 +65,12 @@ class Case:
         return len(self.origins)
 
 
-def make_case(name: str, vertices: np.ndarray, faces: np.ndarray, why: str,
-              origins: np.ndarray, directions: np.ndarray, tmin=0.0, tmax=np.inf, *,
+def make_case(name: str, vertices: np.ndarray, faces: np.ndarray, why: str, rays: tuple, *,
               axis_rays: int = 0, seed: int = 0, **extra) -> Case:
-    """A :class:`Case` with rays as float32 arrays, plus ``axis_rays`` axis-aligned rays."""
+    """A :class:`Case` with ``rays`` (``(origins, directions)`` or ``(origins,
+    directions, tmin, tmax)``) as float32 arrays, plus ``axis_rays`` axis-aligned rays
+    (drawn with ``seed``); ``extra``: the other fields of :class:`Case`."""
+    origins, directions, tmin, tmax = (*rays, 0.0, np.inf) if len(rays) == 2 else rays
     o = np.asarray(origins, np.float32).reshape(-1, 3)
     d = np.asarray(directions, np.float32).reshape(-1, 3)
     lo = np.broadcast_to(np.asarray(tmin, np.float32), (len(o),))
@@ -159,7 +161,7 @@ def _scene_case(name: str, v: np.ndarray, f: np.ndarray, why: str, rays: int = 5
                 seed: int = 0, spread: float = 1.0, aim_faces: np.ndarray | None = None) -> Case:
     """A scene case with aimed rays and axis-aligned rays (a quarter as many)."""
     o, d = rays_at(v, f if aim_faces is None else aim_faces, rays, seed, spread)
-    return make_case(name, v, f, why, o, d, axis_rays=max(rays // 4, 6), seed=seed)
+    return make_case(name, v, f, why, (o, d), axis_rays=max(rays // 4, 6), seed=seed)
 
 
 # -- 1-9: scenes ----------------------------------------------------------------------
@@ -178,7 +180,7 @@ def one_point(count: int = 3000) -> Case:
     o = np.float32([[0, 0, 0], [1.5, 1.5, 0], [1.5, 1.5, 1.5], [1.5, 1.5, 1.5]])
     d = np.float32([[1, 1, 1], [0, 0, 1], [1, 0, 0], [-0.0, -0.0, -1]])
     return make_case("one_point", v, f, "all vertices at one point: zero-extent scene, "
-                     "nothing can be hit", o, d, axis_rays=12)
+                     "nothing can be hit", (o, d), axis_rays=12)
 
 
 def flat_plane(count: int = 4000, seed: int = 1) -> Case:
@@ -199,7 +201,7 @@ def line_of_triangles(count: int = 2000) -> Case:
     o = np.stack([rng.random(384) * count, rng.random(384) * 5e-4, np.ones(384)], 1)
     d = np.tile([0.0, -0.0, -1.0], (384, 1))
     case = make_case("line_of_triangles", v, f, "a line of triangles: y extent 1e-3, z extent 0",
-                     o, d, axis_rays=96, seed=2)
+                     (o, d), axis_rays=96, seed=2)
     return case
 
 
@@ -321,7 +323,7 @@ def closed_cube_vertices_edges(n: int = 8) -> Case:
     return make_case("closed_cube_vertices_edges", v, f,
                      "rays exactly through the shared vertices and edges of a closed cube; "
                      "from inside every ray must hit (no leak)",
-                     np.concatenate([o, o2]), np.concatenate([d, d2]),
+                     (np.concatenate([o, o2]), np.concatenate([d, d2])),
                      must_hit=np.concatenate([must, must2]))
 
 
@@ -336,7 +338,7 @@ def closed_sphere_vertices_edges(n: int = 8) -> Case:
     return make_case("closed_sphere_vertices_edges", v, f,
                      "rays through the vertices and edge midpoints of a closed sphere mesh "
                      "(general position); from inside every ray must hit",
-                     np.concatenate([o, o2]), np.concatenate([d, d2]),
+                     (np.concatenate([o, o2]), np.concatenate([d, d2])),
                      must_hit=np.concatenate([must, must2]))
 
 
@@ -366,7 +368,7 @@ def axis_rays_signed_zeros(n: int = 4) -> Case:
     d = np.tile(dirs, (len(starts), 1))
     return make_case("axis_rays_signed_zeros", v, f,
                      "axis-aligned rays, zero components +0.0 and -0.0, origins on box and "
-                     "face planes (0 * inf in the slab test)", o, d)
+                     "face planes (0 * inf in the slab test)", (o, d))
 
 
 def rays_on_surface(n: int = 4) -> Case:
@@ -405,7 +407,8 @@ def rays_on_surface(n: int = 4) -> Case:
     return make_case("rays_on_surface", v, f,
                      "origins exactly on triangles, vertices and edges (t = 0); tmax = 0; "
                      "tmin = tmax at the exact hit distance",
-                     np.concatenate(o), np.concatenate(d), np.concatenate(tmin), np.concatenate(tmax))
+                     (np.concatenate(o), np.concatenate(d), np.concatenate(tmin),
+                      np.concatenate(tmax)))
 
 
 def rays_in_face_planes(n: int = 4) -> Case:
@@ -425,7 +428,7 @@ def rays_in_face_planes(n: int = 4) -> Case:
     o = np.concatenate([start, start - 3 * h * axis_d])
     return make_case("rays_in_face_planes", v, f,
                      "rays parallel to a face and lying in its plane (inside it, along its "
-                     "edges, and from outside the cube)", o, np.concatenate([d, axis_d]))
+                     "edges, and from outside the cube)", (o, np.concatenate([d, axis_d])))
 
 
 def scaled_directions(count: int = 1025, scale: float = 1e-35, size: float = 1000.0) -> Case:
@@ -439,7 +442,7 @@ def scaled_directions(count: int = 1025, scale: float = 1e-35, size: float = 100
                         base.directions.astype(np.float64) / scale]) * size
     return make_case("scaled_directions", v, base.faces,
                      f"directions of length {scale:g} and {1 / scale:g}: hits at t near "
-                     f"{1 / scale:g} and {scale:g}", o, d)
+                     f"{1 / scale:g} and {scale:g}", (o, d))
 
 
 # -- 11: deep trees -----------------------------------------------------------------
@@ -476,7 +479,7 @@ def deep_morton_chain(axis_bits: int = 10, run: int = 4096) -> Case:
     key = 3 * axis_bits
     return make_case(f"deep_morton_chain_{key}", v, f,
                      f"one triangle per bit of {key}-bit Morton codes plus {run} copies: "
-                     f"a Karras chain about {key} + log2({run}) deep", o, d, axis_rays=64)
+                     f"a Karras chain about {key} + log2({run}) deep", (o, d), axis_rays=64)
 
 
 def deep_sah_chain(step: float = 3.5, size: float = 2.0 ** -10, top: int = 127, bottom: int = -150,
@@ -507,7 +510,7 @@ def deep_sah_chain(step: float = 3.5, size: float = 2.0 ** -10, top: int = 127, 
     d = np.concatenate([d, np.stack([sign, np.where(sign > 0, 0.0, -0.0), zero], 1)])
     return make_case(name, v, f,
                      f"{len(x)} triangles at +-2^k, k from {top} down by {step:g} to "
-                     f"{int(e[-1])}: SAH splits peel about one per level", o, d)
+                     f"{int(e[-1])}: SAH splits peel about one per level", (o, d))
 
 
 def exponential_spacing(count: int = 120) -> Case:
@@ -519,7 +522,7 @@ def exponential_spacing(count: int = 120) -> Case:
     f = np.arange(3 * count, dtype=np.uint32).reshape(-1, 3)
     o = np.stack([x, np.full(count, 2e-4), np.full(count, -1.0)], 1)
     d = np.tile([0.0, 0.0, 1.0], (count, 1))
-    return make_case("exponential_spacing", v, f, "primitives spaced 2^-k apart along x", o, d,
+    return make_case("exponential_spacing", v, f, "primitives spaced 2^-k apart along x", (o, d),
                      axis_rays=32)
 
 
@@ -553,7 +556,7 @@ def over_2_24_triangles(width: int = 4097, height: int = 2048) -> Case:
     o = np.stack([i + fx, j + fy, np.full(len(prims), 1.0)], 1)
     d = np.tile([0.0, 0.0, -1.0], (len(prims), 1))
     case = make_case("over_2_24_triangles", v, f,
-                     f"{n:,} triangles (> 2^24): indices beyond float32's integers", o, d,
+                     f"{n:,} triangles (> 2^24): indices beyond float32's integers", (o, d),
                      expected_prim=prims.astype(np.int32),
                      expected_t=np.ones(len(prims), np.float32), slow=True)
     return case

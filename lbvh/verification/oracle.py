@@ -35,7 +35,7 @@ of 16 triangles whose box (padded by ``1e-6`` of the scene's scale) the ray
 cannot reach are skipped before the exact test; the padding is a million
 times the float64 rounding of that box test, so culling never changes a
 result (``cull=False`` tests every pair, to check exactly that). Pairs are
-processed in chunks of ``max_pairs`` to bound memory.
+processed in chunks of :data:`MAX_PAIRS` to bound memory.
 
 Both return :class:`lbvh.queries.traverse.Hits`; among triangles hit at exactly the
 same ``t`` the lowest triangle index wins.
@@ -449,6 +449,11 @@ def _reachable_blocks(rays: _Rays, idx: np.ndarray, lo: np.ndarray, hi: np.ndarr
     return (tn <= tf) & (tf >= rays.tmin[idx, None]) & (tn <= rays.tmax[idx, None])
 
 
+#: Ray-triangle pairs per numpy step of the brute-force answers (about ``400 *
+#: MAX_PAIRS`` bytes).
+MAX_PAIRS = 1 << 18
+
+
 def _candidate_pairs(rays: _Rays, num_tris: int, blocks, max_pairs: int):
     """Yield (ray, tri) index arrays of at most about ``max_pairs`` pairs covering every
     pair that is not culled."""
@@ -496,8 +501,7 @@ def _every_hit(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: A
 
 
 def brute_force(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: Any = 0.0,
-                tmax: Any = np.inf, *, dtype=np.float64, cull: bool = True,
-                max_pairs: int = 1 << 18) -> Hits:
+                tmax: Any = np.inf, *, dtype=np.float64, cull: bool = True) -> Hits:
     """Closest hit of every ray against every triangle (see the module docstring).
 
     Args:
@@ -506,14 +510,13 @@ def brute_force(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: 
             (same validation, same float32 conversion).
         dtype: ``np.float64`` for the oracle, ``np.float32`` for the kernel's twin.
         cull: skip pairs whose triangle's block the ray cannot reach (never changes results).
-        max_pairs: ray-triangle pairs per numpy step (about ``400 * max_pairs`` bytes).
 
     Returns:
         :class:`lbvh.queries.traverse.Hits`, float32 fields (the oracle's float64 ``t, u, v``
         rounded to nearest), ``overflow`` all ``False``.
     """
     rays, found = _every_hit(vertices, faces, origins, directions, tmin, tmax, dtype, cull,
-                             max_pairs, edge_rule=False)
+                             MAX_PAIRS, edge_rule=False)
     n = rays.count
     out = Hits(t=np.full(n, np.inf, np.float32), prim=np.full(n, -1, np.int32),
                u=np.zeros(n, np.float32), v=np.zeros(n, np.float32),
@@ -550,8 +553,7 @@ def hits_on(vertices: Any, faces: Any, origins: Any, directions: Any, prims: Any
 
 
 def all_hits_brute(vertices: Any, faces: Any, origins: Any, directions: Any, tmin: Any = 0.0,
-                   tmax: Any = np.inf, *, dtype=np.float64, cull: bool = True,
-                   max_pairs: int = 1 << 18) -> AllHits:
+                   tmax: Any = np.inf, *, dtype=np.float64, cull: bool = True) -> AllHits:
     """Every hit of every ray against every triangle, with the edge rule of
     kernels/all_hits.cl (a ray through a shared edge or vertex hits one of its
     triangles): the twin of :func:`lbvh.queries.all_hits.all_hits` (``dtype=np.float32``:
@@ -561,7 +563,7 @@ def all_hits_brute(vertices: Any, faces: Any, origins: Any, directions: Any, tmi
     lower triangle first), nothing truncated.
     """
     rays, found = _every_hit(vertices, faces, origins, directions, tmin, tmax, dtype, cull,
-                             max_pairs, edge_rule=True)
+                             MAX_PAIRS, edge_rule=True)
     n = rays.count
     if found:
         ray, tri, t, bu, bv, _ = (np.concatenate(cols) for cols in zip(*found))
@@ -582,7 +584,7 @@ def all_hits_brute(vertices: Any, faces: Any, origins: Any, directions: Any, tmi
 
 def signed_counts_brute(vertices: Any, faces: Any, origins: Any, directions: Any,
                         tmin: Any = 0.0, tmax: Any = np.inf, *, dtype=np.float32,
-                        cull: bool = True, max_pairs: int = 1 << 18) -> np.ndarray:
+                        cull: bool = True) -> np.ndarray:
     """The twin of ``count_hits(..., signed=True)``: every hit of :func:`all_hits_brute`
     (``dtype``) counted -1 where its det is positive (the ray enters the triangle's
     front, ``n . d < 0``, ``n = (b - a) x (c - a)``) and +1 where it is negative, det
@@ -590,7 +592,7 @@ def signed_counts_brute(vertices: Any, faces: Any, origins: Any, directions: Any
     rounded, as the kernel's; a sliver's can differ in sign from the exact ``n . d``,
     consistently for the triangles of a closed surface): ``int64 (N,)``."""
     rays, found = _every_hit(vertices, faces, origins, directions, tmin, tmax, dtype, cull,
-                             max_pairs, edge_rule=True)
+                             MAX_PAIRS, edge_rule=True)
     if not found:
         return np.zeros(rays.count, np.int64)
     ray, *_, sign = (np.concatenate(cols) for cols in zip(*found))

@@ -83,7 +83,7 @@ def build_with(builder: str, vertices: np.ndarray, faces: np.ndarray, origins: A
 
 
 def _nonfinite_boxes(bvh: Any) -> int:
-    finite = np.isfinite(bvh.lower).all(axis=1) & np.isfinite(bvh.upper).all(axis=1)
+    finite = np.isfinite(bvh.nodes["lower"]).all(axis=1) & np.isfinite(bvh.nodes["upper"]).all(axis=1)
     return int((~finite).sum())
 
 
@@ -121,7 +121,7 @@ def run_case(case: Case, builder: str, judge: Judge | None = None, device: Any =
     out.tree_stack = stack_size_for(bvh.query_data)
     out.stack = case.stack_size if out.forced_stack else out.tree_stack
     out.stack_need = stack_need(bvh.query_data)
-    out.depth = int(node_depths(bvh.parent, bvh.root).max()) if bvh.num_nodes > 1 else 0
+    out.depth = int(node_depths(bvh.tree.read("parent"), bvh.root).max()) if bvh.tree.num_nodes > 1 else 0
     if out.validate_error:  # tracing a broken tree proves nothing more
         return out
     judge = Judge(case, reference(case)) if judge is None else judge

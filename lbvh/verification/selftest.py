@@ -167,9 +167,10 @@ def _check(ctx: dev.Context, stage=lambda name: None) -> list[str]:
     # A whole build: the refit's boxes against the numpy refit, hits against the oracle
     stage("a whole build (bounds, morton, sort, emit, refit)")
     tree = BVH(Mesh(v, f, vb, fb), build_tree(ctx, Mesh(v, f, vb, fb)))
-    want_lo, want_hi = refit_numpy(tree.nodes, tree.parent, tree.root, tree.prim_order, v, f)
+    want_lo, want_hi = refit_numpy(tree.nodes, tree.tree.read("parent"), tree.root,
+                                   tree.prim_order, v, f)
     compare("refit.cl refit (boxes of the build)",
-            np.hstack([tree.lower, tree.upper]), np.hstack([want_lo, want_hi]))
+            np.hstack([tree.nodes["lower"], tree.nodes["upper"]]), np.hstack([want_lo, want_hi]))
     rng = np.random.default_rng(3)
     targets = v[f[rng.integers(0, n, 64)]].mean(axis=1)
     origins = (targets + rng.normal(size=targets.shape).astype(np.float32) * 4).astype(np.float32)

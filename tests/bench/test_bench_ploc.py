@@ -16,7 +16,7 @@ def test_ploc_tree_is_valid_and_answers_as_the_default():
     for radius in (1, 4, 16):
         bvh, seconds = bench.ploc_bvh(v, f, radius)
         bvh.validate()
-        assert seconds >= 0 and bvh.num_nodes == 2 * len(f) - 1
+        assert seconds >= 0 and bvh.tree.num_nodes == 2 * len(f) - 1
         rng = np.random.default_rng(3)
         lo, hi = v.min(axis=0), v.max(axis=0)
         o = (lo + (hi - lo) * rng.uniform(-0.5, 1.5, (2000, 3))).astype(np.float32)

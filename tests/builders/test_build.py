@@ -12,7 +12,7 @@ import pytest
 import lbvh
 from conftest import REPO, random_soup, shared_mesh, shipped_mesh
 from lbvh import device as dev
-from lbvh.layout import NODE_DTYPE
+from lbvh.layout import NODE_DTYPE, children_of, is_leaf, prim_range_of
 
 
 @pytest.mark.parametrize("scene", ["stanford-bunny.obj", "crytek_sponza.obj", "conference.obj"])
@@ -67,8 +67,8 @@ def test_generated_cases_build_valid_trees(name, keys):
     v, f = GENERATED[name]()
     bvh = lbvh.build(v, f, key_bits=keys)
     bvh.validate()
-    assert bvh.num_nodes == 2 * len(f) - 1 and bvh.root == 0
-    assert np.isfinite(bvh.lower).all() and np.isfinite(bvh.upper).all()
+    assert bvh.tree.num_nodes == 2 * len(f) - 1 and bvh.root == 0
+    assert np.isfinite(bvh.nodes["lower"]).all() and np.isfinite(bvh.nodes["upper"]).all()
     if name == "all_identical":
         assert bvh.report().duplicate_codes == len(f) - 1
 
@@ -78,13 +78,13 @@ def test_views_follow_the_documented_layout():
     bvh = lbvh.build(v, f)
     n = len(f)
     assert bvh.nodes.dtype == NODE_DTYPE and bvh.nodes.shape == (2 * n - 1,)
-    assert bvh.lower.dtype == np.float32 and bvh.lower.shape == (2 * n - 1, 3)
-    assert bvh.children.dtype == np.int32 and bvh.children.shape == (2 * n - 1, 2)
-    assert (bvh.children[n - 1:] == -1).all() and (bvh.children[: n - 1] >= 0).all()
-    assert np.array_equal(bvh.prim_range[n - 1:], np.stack([np.arange(n), np.ones(n)], 1))
-    assert bvh.parent[0] == -1 and bvh.prim_order.dtype == np.int32
+    assert bvh.nodes["lower"].dtype == np.float32 and bvh.nodes["lower"].shape == (2 * n - 1, 3)
+    assert children_of(bvh.nodes).dtype == np.int32 and children_of(bvh.nodes).shape == (2 * n - 1, 2)
+    assert (children_of(bvh.nodes)[n - 1:] == -1).all() and (children_of(bvh.nodes)[: n - 1] >= 0).all()
+    assert np.array_equal(prim_range_of(bvh.nodes)[n - 1:], np.stack([np.arange(n), np.ones(n)], 1))
+    assert bvh.tree.read("parent")[0] == -1 and bvh.prim_order.dtype == np.int32
     assert np.array_equal(np.sort(bvh.prim_order), np.arange(n))
-    assert bvh.is_leaf.sum() == n
+    assert is_leaf(bvh.nodes).sum() == n
     with pytest.raises(ValueError):
         bvh.nodes["lower"][0] = 0  # views are read-only: the device copy is the truth
 
@@ -98,8 +98,9 @@ def test_save_and_load_round_trip(tmp_path):
         assert data["nodes"].dtype == NODE_DTYPE
     loaded = lbvh.load(path)
     loaded.validate()
-    for name in ("nodes", "parent", "prim_order", "vertices", "faces"):
+    for name in ("nodes", "prim_order", "vertices", "faces"):
         assert np.array_equal(getattr(loaded, name), getattr(bvh, name)), name
+    assert np.array_equal(loaded.tree.read("parent"), bvh.tree.read("parent"))
     loaded.refit(v * np.float32(2))
     loaded.validate()
 
@@ -140,8 +141,8 @@ def test_refit_follows_moving_vertices():
     bvh.refit(moved)
     bvh.validate()
     fresh = lbvh.build(moved, f)
-    assert np.allclose(bvh.lower[bvh.root], fresh.lower[fresh.root])
-    assert np.array_equal(bvh.lower[bvh.root], moved.min(axis=0))
+    assert np.allclose(bvh.nodes["lower"][bvh.root], fresh.nodes["lower"][fresh.root])
+    assert np.array_equal(bvh.nodes["lower"][bvh.root], moved.min(axis=0))
 
 
 def test_second_build_compiles_nothing(ctx):
@@ -189,10 +190,10 @@ def test_build_with_leaf_collapse():
     plain = lbvh.build(v, f)
     bvh = lbvh.build(v, f, collapse=True, max_leaf_size=4)
     bvh.validate()
-    sizes = bvh.prim_range[bvh.is_leaf, 1]
-    assert sizes.max() <= 4 and sizes.sum() == len(f) and bvh.num_nodes < plain.num_nodes
+    sizes = prim_range_of(bvh.nodes)[is_leaf(bvh.nodes), 1]
+    assert sizes.max() <= 4 and sizes.sum() == len(f) and bvh.tree.num_nodes < plain.tree.num_nodes
     assert lbvh.sah_cost(bvh) <= lbvh.sah_cost(plain)
-    assert bvh.builder == "lbvh+collapse"
+    assert bvh.tree.builder == "lbvh+collapse"
 
 
 def test_scratch_pool_holds_one_build_and_is_reused(ctx):
@@ -214,15 +215,15 @@ def test_a_dropped_trees_buffers_serve_the_next_build(ctx):
     v, f = random_soup(5000, seed=22)
     ctx.memory.trim()
     first = lbvh.build(v, f, key_bits=30)
-    expected, ptr = first.nodes.copy(), first.nodes_buf.int_ptr
+    expected, ptr = first.nodes.copy(), first.tree.nodes.int_ptr
     second = lbvh.build(v, f, key_bits=30)
-    assert second.nodes_buf.int_ptr != ptr            # first is alive: not shared
-    last = second.nodes_buf.int_ptr
+    assert second.tree.nodes.int_ptr != ptr            # first is alive: not shared
+    last = second.tree.nodes.int_ptr
     del first, second                                  # second is the last dropped
     gc.collect()
     held = ctx.memory.pooled_bytes()
     third = lbvh.build(v, f, key_bits=30)
-    assert third.nodes_buf.int_ptr == last
+    assert third.tree.nodes.int_ptr == last
     assert ctx.memory.pooled_bytes() < held                  # the outputs came from the pool
     assert np.array_equal(third.nodes, expected)
     third.validate()
@@ -241,11 +242,11 @@ def test_a_collapsed_rebuild_takes_its_buffers_from_the_pool(ctx):
     ctx.memory.trim()
     first = lbvh.build(v, f, key_bits=30, collapse=True)
     assert ctx.memory.pooled_bytes() >= 16 * (2 * len(f) - 1)
-    expected, last = first.nodes.copy(), first.nodes_buf.int_ptr
+    expected, last = first.nodes.copy(), first.tree.nodes.int_ptr
     del first
     gc.collect()
     second = lbvh.build(v, f, key_bits=30, collapse=True)
-    assert second.nodes_buf.int_ptr == last
+    assert second.tree.nodes.int_ptr == last
     assert np.array_equal(second.nodes, expected)
     second.validate()
     del second

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 import lbvh
+from lbvh.layout import is_leaf, prim_range_of
 from conftest import random_soup, shared_mesh, shipped_mesh
 from lbvh.api import collapse_leaves
 from lbvh.builders.collapse import collapse_decisions, collapse_numpy
@@ -19,15 +20,15 @@ from lbvh.builders.refit import refit_numpy
 def _check_against_twin(bvh: lbvh.BVH, **options) -> lbvh.BVH:
     collapsed = collapse_leaves(bvh, **options)
     collapsed.validate()
-    twin = collapse_numpy(bvh.nodes, bvh.parent, bvh.root, **options)
+    twin = collapse_numpy(bvh.nodes, bvh.tree.read("parent"), bvh.root, **options)
     decided = collapse_decisions(bvh.tree, CollapseOptions(**options))
     for key in ("first", "end", "count"):
         assert np.array_equal(decided[key], getattr(twin, key)), key
     assert np.array_equal(decided["cost"].view(np.int32), twin.cost.view(np.int32))
     assert np.array_equal(decided["becomes_leaf"], twin.becomes_leaf)
     assert collapsed.nodes.tobytes() == twin.nodes.tobytes()
-    assert np.array_equal(collapsed.parent, twin.parent)
-    assert np.array_equal(collapsed.leaf_nodes, twin.leaf_nodes)
+    assert np.array_equal(collapsed.tree.read("parent"), twin.parent)
+    assert np.array_equal(collapsed.tree.leaf_nodes, twin.leaf_nodes)
     assert collapsed.root == twin.root == 0
     assert np.array_equal(collapsed.prim_order, bvh.prim_order)
     return collapsed
@@ -62,10 +63,10 @@ def test_collapse_of_lbvh_matches_twin_and_never_costs_more(name, mesh):
     collapsed = _check_against_twin(bvh)
     assert bvh.nodes.tobytes() == before.tobytes()  # the input tree is left alone
     assert sah_cost(collapsed) <= sah_cost(bvh) * (1 + 1e-6)
-    assert collapsed.prim_range[collapsed.is_leaf, 1].max() <= 8
+    assert prim_range_of(collapsed.nodes)[is_leaf(collapsed.nodes), 1].max() <= 8
     rep = collapsed.report()
     assert rep.builder == "lbvh+collapse" and "collapse" in rep.phase_seconds
-    assert rep.num_leaves == len(collapsed.leaf_nodes)
+    assert rep.num_leaves == len(collapsed.tree.leaf_nodes)
 
 
 def test_collapse_of_a_sah_tree_uses_its_leaf_list():
@@ -83,10 +84,10 @@ def test_constants_steer_the_collapse():
     assert same.nodes.tobytes() == bvh.nodes.tobytes()
     # node visits far dearer than triangle tests: the whole scene becomes one leaf
     one = _check_against_twin(bvh, c_node=100.0, max_leaf_size=len(f))
-    assert one.num_nodes == 1 and one.prim_range[0].tolist() == [0, len(f)]
+    assert one.tree.num_nodes == 1 and prim_range_of(one.nodes)[0].tolist() == [0, len(f)]
     # cheaper node visits make merging pay less often
     free = _check_against_twin(bvh, c_node=0.0)
-    assert free.num_nodes >= collapse_leaves(bvh).num_nodes > one.num_nodes
+    assert free.tree.num_nodes >= collapse_leaves(bvh).tree.num_nodes > one.tree.num_nodes
 
 
 @pytest.mark.parametrize("scene", ["stanford-bunny.obj"])
@@ -95,7 +96,7 @@ def test_collapse_on_a_shared_scene(scene):
     bvh = lbvh.build(v, f)
     collapsed = _check_against_twin(bvh)
     assert sah_cost(collapsed) < sah_cost(bvh)
-    assert len(collapsed.leaf_nodes) < len(f)
+    assert len(collapsed.tree.leaf_nodes) < len(f)
 
 
 def test_refit_of_a_collapsed_tree():
@@ -105,9 +106,9 @@ def test_refit_of_a_collapsed_tree():
     moved = (v * np.float32(1.5) + rng.normal(0, 0.05, v.shape)).astype(np.float32)
     collapsed.refit(moved)
     collapsed.validate()
-    lower, upper = refit_numpy(collapsed.nodes, collapsed.parent, collapsed.root,
+    lower, upper = refit_numpy(collapsed.nodes, collapsed.tree.read("parent"), collapsed.root,
                                collapsed.prim_order, moved, f)
-    assert np.array_equal(collapsed.lower, lower) and np.array_equal(collapsed.upper, upper)
+    assert np.array_equal(collapsed.nodes["lower"], lower) and np.array_equal(collapsed.nodes["upper"], upper)
 
 
 @pytest.mark.parametrize("options", [{"c_node": -1.0}, {"c_tri": 0.0}, {"max_leaf_size": 0},

@@ -90,7 +90,7 @@ def test_a_path_is_loaded(tmp_path):
     for given in (str(path), path):
         bvh = lbvh.build(given)
         bvh.validate()
-        assert bvh.num_prims == len(GOOD_F)
+        assert bvh.mesh.num_prims == len(GOOD_F)
     with pytest.raises(ValueError, match="a path .* together with faces"):
         lbvh.build(str(path), GOOD_F)
 

@@ -10,6 +10,7 @@ import lbvh
 from conftest import random_soup, shipped_mesh
 from lbvh.builders.bounds import triangle_boxes_numpy
 from lbvh.builders.ray_sampled import TMAX_SLACK, RaySample
+from lbvh.builders.options import SAHOptions
 from lbvh.builders.sah import sah_tree
 from lbvh.camera import frame_bounds
 
@@ -131,8 +132,8 @@ def test_the_tree_is_the_twins_node_for_node(seed):
     prior = float(rng.choice([0.5, 4.0, 16.0]))
     candidates = int(rng.choice([2, 3, 8, 32]))
     max_leaf = int(rng.choice([1, 4, 8]))
-    nodes, prim_order = sah_tree(lo, hi, max_leaf_size=max_leaf, rays=sample, ray_prior=prior,
-                                 ray_candidates=candidates)
+    nodes, prim_order = sah_tree(lo, hi, SAHOptions(max_leaf_size=max_leaf, rays=sample,
+                                                    ray_prior=prior, ray_candidates=candidates))
     assert _sets(nodes, prim_order) == twin(lo, hi, sample, prior, candidates, max_leaf)
 
 
@@ -140,7 +141,7 @@ def test_where_no_ray_enters_the_tree_is_the_sah_references():
     lo, hi, _, rng = _case(4)
     away = RaySample(np.full((20, 3), 50, np.float32), np.ones((20, 3), np.float32),
                      np.full(20, np.inf, np.float32))
-    with_rays = sah_tree(lo, hi, rays=away)
+    with_rays = sah_tree(lo, hi, SAHOptions(rays=away))
     plain = sah_tree(lo, hi)
     for a, b in zip(with_rays, plain):
         assert np.array_equal(a, b)
@@ -155,7 +156,7 @@ def test_the_rays_change_the_tree():
     o = np.tile(lo.min(axis=0) - 0.1, (500, 1)).astype(np.float32)
     d = (rng.random((500, 3)) * 0.3 + 0.05).astype(np.float32)
     sample = RaySample(o, d, np.full(500, 0.5, np.float32))
-    assert not np.array_equal(sah_tree(lo, hi, rays=sample)[1], sah_tree(lo, hi)[1])
+    assert not np.array_equal(sah_tree(lo, hi, SAHOptions(rays=sample))[1], sah_tree(lo, hi)[1])
 
 
 def _camera_rays(v, width, height):

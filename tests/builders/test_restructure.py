@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import lbvh
+from lbvh.layout import is_leaf
 from conftest import random_soup, shared_mesh, shipped_mesh
 from lbvh.metrics.quality import sah_cost
 from lbvh.builders.refit import refit_numpy
@@ -59,16 +60,16 @@ def test_device_restructure_matches_twin_bit_for_bit(name, rounds):
     plain = lbvh.build(v, f)
     better = lbvh.build(v, f, treelet_rounds=rounds)
     better.validate()
-    nodes, parent = restructure_python(plain.nodes, plain.parent, plain.root, rounds)
+    nodes, parent = restructure_python(plain.nodes, plain.tree.read("parent"), plain.root, rounds)
     assert better.nodes.tobytes() == nodes.tobytes()
-    assert np.array_equal(better.parent, parent)
+    assert np.array_equal(better.tree.read("parent"), parent)
     # Leaves, slots and the primitive order stay; the root stays node 0.
     assert better.root == plain.root == 0
     assert np.array_equal(better.prim_order, plain.prim_order)
-    leaves = plain.is_leaf
-    assert np.array_equal(better.is_leaf, leaves)
+    leaves = is_leaf(plain.nodes)
+    assert np.array_equal(is_leaf(better.nodes), leaves)
     assert better.nodes[leaves].tobytes() == plain.nodes[leaves].tobytes()
-    assert better.builder == f"lbvh+treelets{rounds}"
+    assert better.tree.builder == f"lbvh+treelets{rounds}"
     assert "restructure" in better.report().phase_seconds
 
 
@@ -122,15 +123,15 @@ def test_refit_of_a_restructured_tree_matches_numpy():
     moved = v + np.float32(0.25) * np.sin(v * 7).astype(np.float32)
     bvh.refit(moved)
     bvh.validate()
-    lower, upper = refit_numpy(bvh.nodes, bvh.parent, bvh.root, bvh.prim_order, moved, f)
-    assert np.array_equal(bvh.lower, lower) and np.array_equal(bvh.upper, upper)
+    lower, upper = refit_numpy(bvh.nodes, bvh.tree.read("parent"), bvh.root, bvh.prim_order, moved, f)
+    assert np.array_equal(bvh.nodes["lower"], lower) and np.array_equal(bvh.nodes["upper"], upper)
 
 
 def test_collapse_after_restructure_gives_a_valid_tree():
     v, f = random_soup(1500, seed=6)
     bvh = lbvh.build(v, f, treelet_rounds=1, collapse=True)
     bvh.validate()
-    assert bvh.builder == "lbvh+treelets1+collapse"
+    assert bvh.tree.builder == "lbvh+treelets1+collapse"
 
 
 @pytest.mark.parametrize("bad", [-1, 1.5, "2", True, None])
@@ -153,11 +154,11 @@ def test_smaller_treelets_match_the_twin_bit_for_bit(name, leaves):
     plain = lbvh.build(v, f)
     better = lbvh.build(v, f, treelet_rounds=2, treelet_leaves=leaves)
     better.validate()
-    nodes, parent = restructure_python(plain.nodes, plain.parent, plain.root, 2, leaves=leaves)
+    nodes, parent = restructure_python(plain.nodes, plain.tree.read("parent"), plain.root, 2, leaves=leaves)
     assert better.nodes.tobytes() == nodes.tobytes()
-    assert np.array_equal(better.parent, parent)
+    assert np.array_equal(better.tree.read("parent"), parent)
     assert np.array_equal(better.prim_order, plain.prim_order)
-    assert better.builder == f"lbvh+treelets2-{leaves}"
+    assert better.tree.builder == f"lbvh+treelets2-{leaves}"
 
 
 def test_treelet_size_trades_cost_for_build_work():
@@ -187,10 +188,10 @@ def test_later_rounds_over_large_subtrees_match_the_twin_bit_for_bit(name, min_l
     plain = lbvh.build(v, f)
     better = lbvh.build(v, f, treelet_rounds=3, treelet_leaves=5, treelet_min_leaves=min_leaves)
     better.validate()
-    nodes, parent = restructure_python(plain.nodes, plain.parent, plain.root, 3, leaves=5,
+    nodes, parent = restructure_python(plain.nodes, plain.tree.read("parent"), plain.root, 3, leaves=5,
                                        min_leaves=min_leaves)
     assert better.nodes.tobytes() == nodes.tobytes()
-    assert np.array_equal(better.parent, parent)
+    assert np.array_equal(better.tree.read("parent"), parent)
 
 
 def test_round_min_leaves_doubles_after_the_first_round():
@@ -207,7 +208,7 @@ def test_a_later_round_over_no_subtree_changes_nothing():
     one = lbvh.build(v, f, treelet_rounds=1)
     three = lbvh.build(v, f, treelet_rounds=3, treelet_min_leaves=1 << 30)
     assert three.nodes.tobytes() == one.nodes.tobytes()
-    assert np.array_equal(three.parent, one.parent)
+    assert np.array_equal(three.tree.read("parent"), one.tree.read("parent"))
 
 
 def test_later_rounds_over_large_subtrees_keep_most_of_the_gain():

@@ -5,8 +5,10 @@ import numpy as np
 import pytest
 
 import lbvh
+from lbvh.layout import is_leaf, prim_range_of
 from conftest import random_soup, shipped_mesh
 from lbvh.metrics.quality import sah_cost
+from lbvh.builders.options import SAHOptions
 from lbvh.builders.sah import best_split, sah_tree
 from lbvh.builders.bounds import triangle_boxes_numpy as triangle_boxes
 
@@ -65,7 +67,7 @@ def test_root_split_is_the_brute_force_best(seed):
     decision = best_split(lo, hi)
     assert (decision.axis, decision.num_left, decision.cost_sum) == (axis, k, cost)
     # the builder's root makes the same split (max_leaf_size=1 forces a split)
-    nodes, prim_order = sah_tree(lo, hi, max_leaf_size=1)
+    nodes, prim_order = sah_tree(lo, hi, SAHOptions(max_leaf_size=1))
     assert _subtree_prims(nodes, prim_order, nodes["a"][0]) == set(decision.left.tolist())
 
 
@@ -139,11 +141,11 @@ def test_degenerate_scenes_give_valid_shallow_trees(case, mesh):
 def test_two_far_triangles_split_two_overlapping_ones_stay_a_leaf():
     far = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [50, 0, 0], [51, 0, 0], [50, 1, 0]], np.float32)
     faces = np.array([[0, 1, 2], [3, 4, 5]])
-    assert lbvh.build(far, faces, builder="sah").num_nodes == 3
+    assert lbvh.build(far, faces, builder="sah").tree.num_nodes == 3
     near = far.copy()
     near[3:] = far[:3] + np.float32(0.01)
     tree = lbvh.build(near, faces, builder="sah")
-    assert tree.num_nodes == 1 and tree.prim_range[0].tolist() == [0, 2]
+    assert tree.tree.num_nodes == 1 and prim_range_of(tree.nodes)[0].tolist() == [0, 2]
 
 
 def test_costs_do_not_overflow_and_scale_exactly():
@@ -163,10 +165,10 @@ def test_max_leaf_size_and_constants_are_honoured(max_leaf):
     v, f = random_soup(2000, seed=5)
     tree = lbvh.build(v, f, builder="sah", max_leaf_size=max_leaf)
     tree.validate()
-    assert tree.prim_range[tree.is_leaf, 1].max() <= max_leaf
+    assert prim_range_of(tree.nodes)[is_leaf(tree.nodes), 1].max() <= max_leaf
     # a free node visit splits everything down to single triangles where it can
     cheap = lbvh.build(v, f, builder="sah", c_node=0.0, max_leaf_size=max_leaf)
-    assert cheap.num_nodes >= tree.num_nodes
+    assert cheap.tree.num_nodes >= tree.tree.num_nodes
 
 
 @pytest.mark.parametrize("options", [{"c_node": -1}, {"c_tri": 0}, {"max_leaf_size": 0},

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import lbvh
+from lbvh.layout import is_leaf, prim_range_of
 from conftest import shipped_mesh
 from lbvh.builders.sbvh import clip_to_slab
 from lbvh.queries.closest import closest_points_numpy
@@ -52,13 +53,13 @@ def test_spatial_splits_lower_the_cost_and_keep_the_invariants():
     sbvh = lbvh.build(v, f, builder="sbvh")
     sah = lbvh.build(v, f, builder="sah")
     sbvh.validate()
-    assert sbvh.tree.clipped_leaves and sbvh.num_prims == len(f)
-    assert sbvh.num_slots > len(f)                          # some triangles split
+    assert sbvh.tree.clipped_leaves and sbvh.mesh.num_prims == len(f)
+    assert sbvh.tree.num_prims > len(f)                          # some triangles split
     assert np.array_equal(np.unique(sbvh.prim_order), np.arange(len(f)))
     assert sah_cost(sbvh) < sah_cost(sah)
     # without spatial splits (alpha 1: never tried) it is the SAH's tree in cost
     plain = lbvh.build(v, f, builder="sbvh", alpha=1.0)
-    assert plain.num_slots == len(f)
+    assert plain.tree.num_prims == len(f)
     assert sah_cost(plain) == pytest.approx(sah_cost(sah), rel=0.02)
 
 
@@ -127,8 +128,8 @@ def test_the_validator_finds_a_part_outside_its_leaves():
     # shrink every leaf holding that triangle to the point of its lower corner: the boxes
     # still nest, only the rules of clipped leaves can see it
     slot = np.flatnonzero(sbvh.prim_order == tri)
-    first, count = sbvh.prim_range[:, 0], sbvh.prim_range[:, 1]
-    leaves = [i for i in np.flatnonzero(sbvh.is_leaf)
+    first, count = prim_range_of(sbvh.nodes)[:, 0], prim_range_of(sbvh.nodes)[:, 1]
+    leaves = [i for i in np.flatnonzero(is_leaf(sbvh.nodes))
               if ((slot >= first[i]) & (slot < first[i] + count[i])).any()]
     for i in leaves:
         nodes["upper"][i] = nodes["lower"][i]

@@ -18,6 +18,7 @@ from lbvh.builders.emit import emit_hierarchy, emit_hierarchy_python
 from lbvh.layout import NODE_DTYPE, children_of, node_depths
 from lbvh.builders.morton import KEY_DTYPE, count_duplicates, morton_codes, morton_codes_numpy
 from lbvh.builders.refit import refit_from_boxes, refit_numpy
+from lbvh.tree import Tree
 from lbvh.device.sort import (LOCAL_BITS, MSD_MIN_KEYS, SCRATCH_BYTES, digit_shifts, expected_mask,
                        msd_plan, radix_sort, radix_sort_numpy)
 
@@ -326,14 +327,14 @@ def test_device_refit_is_bit_identical_to_serial_refit(ctx, scene):
     import lbvh
     v, f = MESHES[scene]()
     bvh = lbvh.build(v, f)
-    lower, upper = refit_numpy(bvh.nodes, bvh.parent, bvh.root, bvh.prim_order, v, f)
-    assert np.array_equal(bvh.lower, lower) and np.array_equal(bvh.upper, upper)
+    lower, upper = refit_numpy(bvh.nodes, bvh.tree.read("parent"), bvh.root, bvh.prim_order, v, f)
+    assert np.array_equal(bvh.nodes["lower"], lower) and np.array_equal(bvh.nodes["upper"], upper)
     # and again after the vertices moved (the animation path)
     rng = np.random.default_rng(0)
     moved = (v + rng.normal(0, 0.05, v.shape).astype(np.float32) * (np.abs(v).max() + 1e-30)).astype(np.float32)
     bvh.refit(moved)
-    lower, upper = refit_numpy(bvh.nodes, bvh.parent, bvh.root, bvh.prim_order, moved, f)
-    assert np.array_equal(bvh.lower, lower) and np.array_equal(bvh.upper, upper)
+    lower, upper = refit_numpy(bvh.nodes, bvh.tree.read("parent"), bvh.root, bvh.prim_order, moved, f)
+    assert np.array_equal(bvh.nodes["lower"], lower) and np.array_equal(bvh.nodes["upper"], upper)
     bvh.validate()
 
 
@@ -356,8 +357,8 @@ def test_build_refit_is_bit_identical_for_any_chunk_length(ctx, scene, per_item)
     nodes, parent, _ = emit_hierarchy(ctx, mem, result.keys, n, 32, write_leaves=False)
     # whatever the unwritten leaf records held (-7 here), the refit writes them whole
     # no counter array: the straddling nodes count their arrivals in their lower.y word
-    refit_from_boxes(ctx, boxes, result.values, nodes, parent, None, n, 2 * n - 1,
-                     karras_ranges=True, per_item=per_item)
+    refit_from_boxes(Tree(ctx, nodes, parent, result.values, 0, 2 * n - 1, n, "lbvh"), boxes,
+                     None, karras_ranges=True, per_item=per_item)
     tree = dev.from_device(ctx, nodes, NODE_DTYPE, (2 * n - 1,))
     parents = read(ctx, parent, np.int32, 2 * n - 1)
     order = read(ctx, result.values, np.int32, n)
@@ -380,11 +381,11 @@ def test_refit_boxes_hold_no_negative_zero_and_equal_the_twin_bit_for_bit(ctx, k
     v = v.copy()
     v[::7][v[::7] == 0] = np.float32(-0.0)   # and more of them
     bvh = lbvh.build(v, f, key_bits=key_bits)
-    for box in (bvh.lower, bvh.upper):
+    for box in (bvh.nodes["lower"], bvh.nodes["upper"]):
         assert not np.signbit(box[box == 0]).any()
-    lower, upper = refit_numpy(bvh.nodes, bvh.parent, bvh.root, bvh.prim_order, v, f)
-    assert np.array_equal(bvh.lower.view(np.int32), lower.view(np.int32))
-    assert np.array_equal(bvh.upper.view(np.int32), upper.view(np.int32))
+    lower, upper = refit_numpy(bvh.nodes, bvh.tree.read("parent"), bvh.root, bvh.prim_order, v, f)
+    assert np.array_equal(bvh.nodes["lower"].view(np.int32), lower.view(np.int32))
+    assert np.array_equal(bvh.nodes["upper"].view(np.int32), upper.view(np.int32))
 
 
 def test_refit_with_opencl_prefetch_equals_the_clang_builtin(ctx, monkeypatch):
@@ -397,8 +398,8 @@ def test_refit_with_opencl_prefetch_equals_the_clang_builtin(ctx, monkeypatch):
     for clang in (True, False) if ctx.compiler_is_clang else (False, False):
         monkeypatch.setattr(ctx, "compiler_is_clang", clang)
         bvh = lbvh.build(v, f, device=ctx)
-        lower, upper = refit_numpy(bvh.nodes, bvh.parent, bvh.root, bvh.prim_order, v, f)
-        assert np.array_equal(bvh.lower, lower) and np.array_equal(bvh.upper, upper)
+        lower, upper = refit_numpy(bvh.nodes, bvh.tree.read("parent"), bvh.root, bvh.prim_order, v, f)
+        assert np.array_equal(bvh.nodes["lower"], lower) and np.array_equal(bvh.nodes["upper"], upper)
         trees.append(bvh.nodes)
     assert np.array_equal(trees[0].view(np.int32), trees[1].view(np.int32))
 
@@ -416,5 +417,5 @@ def test_refit_of_a_host_tree_with_multi_triangle_leaves(ctx):
     bvh = lbvh.BVH.from_arrays(nodes, np.arange(n), 0, v, f, builder="hand-made", validate=False)
     bvh.refit(v)
     bvh.validate()
-    lower, upper = refit_numpy(bvh.nodes, bvh.parent, 0, bvh.prim_order, v, f)
-    assert np.array_equal(bvh.lower, lower) and np.array_equal(bvh.upper, upper)
+    lower, upper = refit_numpy(bvh.nodes, bvh.tree.read("parent"), 0, bvh.prim_order, v, f)
+    assert np.array_equal(bvh.nodes["lower"], lower) and np.array_equal(bvh.nodes["upper"], upper)

@@ -9,7 +9,7 @@ import lbvh
 from conftest import random_soup
 from lbvh.builders.bounds import triangle_boxes_numpy
 from lbvh.builders.topdown import split_tree
-from lbvh.layout import NODE_DTYPE, node_depths
+from lbvh.layout import NODE_DTYPE, is_leaf, node_depths, prim_range_of
 
 
 def recursive_twin(lo: np.ndarray, hi: np.ndarray, rule: str, leaf: int):
@@ -82,14 +82,14 @@ def test_through_build(rule):
     v, f = random_soup(2000, seed=4)
     bvh = lbvh.build(v, f, builder=rule)
     bvh.validate()
-    assert bvh.builder == rule and bvh.build_report.builder == rule
-    depth = int(node_depths(bvh.parent, bvh.root).max())
+    assert bvh.tree.builder == rule and bvh.tree.report.builder == rule
+    depth = int(node_depths(bvh.tree.read("parent"), bvh.root).max())
     if rule == "median":
         assert depth == int(np.ceil(np.log2(len(f))))   # balanced
     leafy = lbvh.build(v, f, builder=rule, max_leaf_size=4)
-    assert leafy.prim_range[leafy.is_leaf, 1].max() <= 4
-    assert lbvh.build(v, f, options=lbvh.SplitOptions(max_leaf_size=4), builder=rule).num_nodes \
-        == leafy.num_nodes
+    assert prim_range_of(leafy.nodes)[is_leaf(leafy.nodes), 1].max() <= 4
+    assert lbvh.build(v, f, options=lbvh.SplitOptions(max_leaf_size=4), builder=rule).tree.num_nodes \
+        == leafy.tree.num_nodes
     # the hits are the oracle's: the same ray answers as the LBVH's
     rng = np.random.default_rng(0)
     o = rng.uniform(-0.5, 1.5, (500, 3)).astype(np.float32)

@@ -98,7 +98,7 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
              lbvh.build(v, f, device=ctx, treelet_rounds=1, collapse=True, max_leaf_size=4),
              lbvh.build(v, f, device=ctx, builder="sah"),
              lbvh.build(v, f, device=ctx, builder="sbvh")]
-    assert trees[3].build_report.key_bits == 63 and trees[2].build_report.key_bits == 30
+    assert trees[3].tree.report.key_bits == 63 and trees[2].tree.report.key_bits == 30
     many = -(-PACKETS_FROM // len(o))
     for bvh in trees:
         clipped = bvh.tree.clipped_leaves   # no box queries, winding or refit on an SBVH
@@ -174,7 +174,7 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
     monkeypatch.setattr(instance_closest, "MIN_POINTS", 256)
     monkeypatch.setattr(ray_order, "MIN_NODES", 256)
     monkeypatch.setattr(sort, "MSD_MIN_KEYS", 256)
-    assert lbvh.queries.ray_order.worth_ordering(len(o), trees[0].num_nodes)
+    assert lbvh.queries.ray_order.worth_ordering(len(o), trees[0].tree.num_nodes)
     trees[0].intersect(o, d)
     trees[4].occluded(o, d)
     trees[0].closest_points(o)

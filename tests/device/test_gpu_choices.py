@@ -109,7 +109,7 @@ def test_bottom_up_walks_across_work_groups_equal_their_twins(gpu_ctx):
         bvh = lbvh.build(v, f, device=gpu_ctx)
         words = bvh.nodes.view(np.int32).reshape(-1, 8)[:, [3, 7]]
         if twin is None:
-            twin = refit_numpy(bvh.nodes, bvh.parent, bvh.root, bvh.prim_order, v, f)
+            twin = refit_numpy(bvh.nodes, bvh.tree.read("parent"), bvh.root, bvh.prim_order, v, f)
             topology = words.copy()
         assert np.array_equal(words, topology)          # the emission is deterministic
         bad = ~((bvh.nodes["lower"] == twin[0]).all(1) & (bvh.nodes["upper"] == twin[1]).all(1))

@@ -49,11 +49,11 @@ for mesh, kw in (((v, f), {}), ((sv, sf), {"key_bits": 63}), ((sv, sf), {"collap
     h = b.intersect(o * 40 if mesh[0] is v else o, d, counters=True)
     a = b.occluded(o, d, tmax=0.7, return_hits=True)
     e = b.all_hits(o, d)
-    out.append(digest(*(n[k] for k in n.dtype.names), b.parent, b.prim_order,
+    out.append(digest(*(n[k] for k in n.dtype.names), b.tree.read("parent"), b.prim_order,
                       h.t, h.prim, h.u, h.v, h.nodes_visited, h.tris_tested, a.hit,
                       e.offsets, e.t, e.prim))
     b.refit(mesh[0] * 1.5)
-    out.append(digest(b.lower, b.upper, b.intersect(o, d).t, b.count_hits(o, d)))
+    out.append(digest(b.nodes["lower"], b.nodes["upper"], b.intersect(o, d).t, b.count_hits(o, d)))
 camera = frame_bounds(v.min(axis=0), v.max(axis=0), 40, 30)
 out.append(digest(lbvh.render(lbvh.build(v, f), camera, "ao", ao_samples=2).image))
 print("digests", " ".join(out))

@@ -6,7 +6,7 @@ import pytest
 
 import lbvh
 from conftest import shipped_mesh
-from lbvh.layout import make_nodes, node_depths
+from lbvh.layout import is_leaf, make_nodes, node_depths
 from lbvh.metrics.quality import epo_estimate, memory_bytes, sah_cost, tree_quality
 
 
@@ -43,7 +43,7 @@ def test_single_leaf_and_zero_area_trees():
     # every triangle at one point: no area anywhere, each ratio is taken as 1
     point = lbvh.build(np.zeros((3, 3), np.float32), np.zeros((5, 3), np.uint32), builder="sah",
                        max_leaf_size=2)
-    internal = int((~point.is_leaf).sum())
+    internal = int((~is_leaf(point.nodes)).sum())
     assert sah_cost(point) == internal + 5
 
 
@@ -52,10 +52,10 @@ def test_tree_quality_figures():
     bvh = lbvh.build(v, f, builder="sah")
     q = tree_quality(bvh, epo_samples=4096)
     assert q["sah_cost"] == sah_cost(bvh) and q["c_node"] == 1.0 and q["c_tri"] == 1.0
-    assert q["num_nodes"] == bvh.num_nodes == 2 * q["num_leaves"] - 1
+    assert q["num_nodes"] == bvh.tree.num_nodes == 2 * q["num_leaves"] - 1
     assert sum(k * c for k, c in q["leaf_size_histogram"].items()) == len(f)
-    assert q["depth"] == int(node_depths(bvh.parent, bvh.root).max())
-    assert q["memory_bytes"] == memory_bytes(bvh.num_nodes, len(f)) == 36 * bvh.num_nodes + 4 * len(f)
+    assert q["depth"] == int(node_depths(bvh.tree.read("parent"), bvh.root).max())
+    assert q["memory_bytes"] == memory_bytes(bvh.tree.num_nodes, len(f)) == 36 * bvh.tree.num_nodes + 4 * len(f)
     assert q["epo"] > 0 and 0 < q["epo_stderr"] < 0.1 * q["epo"] and q["epo_samples"] == 4096
     assert "epo" not in tree_quality(bvh, epo=False)
 
@@ -84,7 +84,7 @@ def test_epo_estimate_matches_the_exact_overlap():
 def test_epo_of_disjoint_leaves_is_zero():
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 0, 0], [6, 0, 0], [5, 1, 0]], np.float32)
     bvh = lbvh.build(v, np.array([[0, 1, 2], [3, 4, 5]]), builder="sah")
-    assert bvh.num_nodes == 3
+    assert bvh.tree.num_nodes == 3
     assert epo_estimate(bvh) == (0.0, 0.0)
 
 

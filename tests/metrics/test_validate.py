@@ -13,7 +13,7 @@ from lbvh.metrics.validate import BVHValidationError, validate_tree
 def tree():
     v, f = shipped_mesh("suzanne.obj")
     bvh = lbvh.build(v, f)
-    return bvh.nodes.copy(), bvh.parent.copy(), bvh.prim_order.copy(), v, f
+    return bvh.nodes.copy(), bvh.tree.read("parent").copy(), bvh.prim_order.copy(), v, f
 
 
 def check(nodes, parent, order, v, f, root=0):

@@ -3,6 +3,8 @@ float64 oracle (lbvh.verification.oracle.all_hits_brute): the same hits bit for 
 crossing through a shared edge or vertex counted once, the same answer from every tree."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pyopencl as cl
 import pytest
@@ -463,17 +465,17 @@ def test_the_wide_walk_with_and_without_clang_builtins_and_with_a_full_stack(cla
     rays = ah._rays(o, d, 0.0, np.inf, "raise")
     defines = {**ah.wide_defines(bvh.ctx, wide.width), "CLANG_MOVMSK": clang,
                "CLANG_CTZ": clang, "CLANG_PREFETCH": clang}
-    total, flags, _ = ah.run_passes(bvh.ctx, ah.KERNEL_FILE, "all_hits", head,
-                                    ah.stack_need(bvh.query_data), rays, 1 << 18, None, defines=defines)
+    walk = ah.HitWalk(ah.KERNEL_FILE, "all_hits", head, ah.stack_need(bvh.query_data),
+                      defines=defines)
+    total, flags, _ = ah.run_passes(bvh.ctx, walk, rays, 1 << 18, None)
     assert np.array_equal(total, want.total) and not flags.any()
-    total, flags, kept = ah.run_passes(bvh.ctx, ah.KERNEL_FILE, "all_hits", head,
-                                       ah.stack_need(bvh.query_data), rays, 1 << 18, -1, defines=defines)
+    total, flags, kept = ah.run_passes(bvh.ctx, walk, rays, 1 << 18, -1)
     assert np.array_equal(total, want.total) and not flags.any()
     for got, name in zip(kept, ("t", "prim", "u", "v")):
         assert np.array_equal(got.view(np.uint32), getattr(want, name).view(np.uint32)), name
-    total, flags, _ = ah.run_passes(bvh.ctx, ah.KERNEL_FILE, "all_hits", head,
-                                    ah.stack_need(bvh.query_data), rays, 1 << 18, None,
-                                    defines={**defines, "STACK_SIZE": 1})
+    total, flags, _ = ah.run_passes(
+        bvh.ctx, dataclasses.replace(walk, defines={**defines, "STACK_SIZE": 1}), rays, 1 << 18,
+        None)
     full = (flags & FLAG_OVERFLOW) != 0
     assert 0 < full.sum() < len(full)
     assert np.array_equal(total[~full], want.total[~full])

@@ -55,7 +55,7 @@ def good_rays(n, seed=0):
     """Rays from around the teapot at points of its triangles: most of them hit."""
     bvh = teapot()
     rng = np.random.default_rng(seed)
-    target = bvh.vertices[bvh.faces[rng.integers(0, bvh.num_prims, n)]].mean(axis=1)
+    target = bvh.vertices[bvh.faces[rng.integers(0, bvh.mesh.num_prims, n)]].mean(axis=1)
     o = (target + rng.normal(size=target.shape) * 40).astype(np.float32)
     return o, (target - o).astype(np.float32)
 

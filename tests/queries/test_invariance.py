@@ -108,7 +108,7 @@ def test_the_degenerate_test_is_exact_and_symmetric():
     want = np.array([False] * 6 + [False, True, False])
     assert np.array_equal(exact.collinear(v, f), want)
     bvh = lbvh.build(v, f)
-    got = np.empty((bvh.num_slots, 3, 3), np.float32)
+    got = np.empty((bvh.tree.num_prims, 3, 3), np.float32)
     cl.enqueue_copy(bvh.ctx.queue, got, bvh.query_data.slot_triangles(), is_blocking=True)
     assert np.array_equal(got.view(np.uint32),
                           order_triangles_numpy(v, f, bvh.prim_order).view(np.uint32))

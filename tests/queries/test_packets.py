@@ -4,6 +4,8 @@ hits (ties included: the lowest index at exactly the same t), the same rays hit 
 any hits, the same flags; on every builder, the hard cases and fuzzed meshes."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pyopencl as cl
 import pytest
@@ -33,8 +35,9 @@ def trace(bvh, o, d, tmin=0.0, tmax=np.inf, *, any_hit=False, packets, ordered=T
         order, wait = ray_order(ctx, rays.origins, rays.directions, rays.count,
                                 *bvh.tree.root_box())
     try:
-        out = tr.trace_buffers(bvh.query_data, rays, any_hit=any_hit, packets=packets, order=order,
-                               wait_for=wait, stack_size=stack_size)
+        out = tr.trace_buffers(bvh.query_data,
+                               dataclasses.replace(rays, order=order, ready=tuple(wait)),
+                               any_hit=any_hit, packets=packets, stack_size=stack_size)
         planes = tr.read_hits(ctx, out)
         flags = np.empty(rays.count, np.int32)
         cl.enqueue_copy(ctx.queue, flags, out.flags, wait_for=[out.event], is_blocking=True)
@@ -89,7 +92,7 @@ def deferred_share(bvh, o, d):
                              ctx.memory.alloc(4 * n))
     defines = tr.kernel_defines(ctx, False, "watertight", False, tr.stack_size_for(bvh.query_data))
     ev = trace_packets(bvh.query_data, rays, any_hit=False, defines=defines, hits=hits, flags=flags,
-                       order=None, deferred=deferred)
+                       deferred=deferred)
     out = np.empty(n, np.int32)
     cl.enqueue_copy(ctx.queue, out, deferred, wait_for=[ev], is_blocking=True)
     ctx.memory.free(hits, flags, deferred)
@@ -232,7 +235,7 @@ def test_packets_refuse_what_they_cannot_do():
     with pytest.raises(ValueError, match="packets=True"):
         tr.trace_buffers(bvh.query_data, rays, packets=True, counters=True)
     with pytest.raises(ValueError, match="packets=True"):
-        tr.trace_buffers(bvh.query_data, rays, packets=True, node_order="global")
+        tr.trace_buffers(bvh.query_data, rays, packets=True, order="global")
     rays.release()
     assert PACKET == 8
 

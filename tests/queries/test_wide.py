@@ -36,7 +36,7 @@ def assert_equal_to_twin(bvh, width):
     assert wide.stack_need == twin.stack_need
     records, record_node = read_records(bvh.ctx, wide)
     assert sorted(record_node.tolist()) == sorted(twin.record_node.tolist())
-    position = np.full(bvh.num_nodes, -1)
+    position = np.full(bvh.tree.num_nodes, -1)
     position[twin.record_node] = np.arange(len(twin.record_node))
     mine = twin.records[position[record_node]]
     # boxes, empty lanes included (+inf, -inf), bit for bit
@@ -80,7 +80,7 @@ def test_twin_records_cover_the_tree_once(width):
     # binary nodes opened inside records appear in no lane
     opened = np.setdiff1d(np.flatnonzero(internal), twin.record_node)
     assert len(np.intersect1d(lanes, opened)) == 0
-    assert len(lanes) == len(np.unique(lanes)) == bvh.num_nodes - 1 - len(opened)
+    assert len(lanes) == len(np.unique(lanes)) == bvh.tree.num_nodes - 1 - len(opened)
     assert set(lanes[internal[lanes]].tolist()) == set(twin.record_node[1:].tolist())
     used = (twin.lanes >= 0).sum(axis=1)
     all_leaves = ~(internal[np.maximum(twin.lanes, 0)] & (twin.lanes >= 0)).any(axis=1)

@@ -20,7 +20,7 @@ from lbvh.queries.winding_moments import (CORNER_ROWS, ROWS_ORDER1, ROWS_ORDER2,
 from lbvh.queries import winding
 from lbvh.verification import hard_cases, meshes
 from lbvh.metrics.error_bound import INSIDE_TOLERANCE, WINDING_BOUND
-from lbvh.layout import NODE_DTYPE
+from lbvh.layout import NODE_DTYPE, children_of, is_leaf, prim_range_of
 from lbvh.metrics.validate import validate_tree
 
 
@@ -41,14 +41,15 @@ def closed_meshes():
 def _node_triangles(bvh, node) -> list[int]:
     """The triangles of ``node``'s subtree, by walking it."""
     prims = np.asarray(bvh.prim_order)
+    leaf, ranges, kids = is_leaf(bvh.nodes), prim_range_of(bvh.nodes), children_of(bvh.nodes)
     stack, tris = [int(node)], []
     while stack:
         x = stack.pop()
-        if bvh.is_leaf[x]:
-            first, count = bvh.prim_range[x]
+        if leaf[x]:
+            first, count = ranges[x]
             tris.extend(prims[first:first + count])
         else:
-            stack.extend(bvh.children[x])
+            stack.extend(kids[x])
     return tris
 
 
@@ -62,7 +63,7 @@ def test_moments_sum_the_triangles_of_each_node():
     assert unit != 1.0
     vs = v.astype(np.float64) * unit
     rng = np.random.default_rng(0)
-    for node in [bvh.root, *rng.integers(0, bvh.num_nodes, 20)]:
+    for node in [bvh.root, *rng.integers(0, bvh.tree.num_nodes, 20)]:
         tris = _node_triangles(bvh, node)
         t = _triangle_terms(vs, f[tris])
         p = t[:, 1:4].sum(0) / t[:, 0].sum()
@@ -99,13 +100,13 @@ def test_moments_sum_the_triangles_of_each_node():
     # the far floor, last: the node's triangle area A times R^3 over 4 pi NODE_ERROR
     areas = np.linalg.norm(np.cross(vs[f][:, 1] - vs[f][:, 0], vs[f][:, 2] - vs[f][:, 0]),
                            axis=1) / 2
-    for node in [bvh.root, *rng.integers(0, bvh.num_nodes, 20)]:
+    for node in [bvh.root, *rng.integers(0, bvh.tree.num_nodes, 20)]:
         tris = _node_triangles(bvh, node)
         floor = areas[tris].sum() * m[node, 3] ** 1.5 / (4 * np.pi * wm.NODE_ERROR)
         assert np.isclose(m[node, -1], floor, rtol=1e-5)
     # the first-order moments are the same numbers, without the second-order rows
     first = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f, order=1)
-    assert first.shape == (bvh.num_nodes, ROWS_ORDER1) and m.shape[1] == ROWS_ORDER2
+    assert first.shape == (bvh.tree.num_nodes, ROWS_ORDER1) and m.shape[1] == ROWS_ORDER2
     assert np.array_equal(first[:, :14], m[:, :14].astype(np.float32))
     assert np.array_equal(first[:, -1], m[:, -1].astype(np.float32))
     with pytest.raises(ValueError, match="order"):
@@ -255,7 +256,7 @@ def test_wide_moments_are_the_lanes_moments():
     assert (~present).any()
     used = lanes[present]   # distinct nodes, every leaf among them
     assert len(np.unique(used)) == len(used)
-    assert set(used[bvh.is_leaf[used]]) == set(np.flatnonzero(bvh.is_leaf))
+    assert set(used[is_leaf(bvh.nodes)[used]]) == set(np.flatnonzero(is_leaf(bvh.nodes)))
     assert np.array_equal(rows.transpose(0, 2, 1)[present], m[lanes[present]])
     empty = rows.transpose(0, 2, 1)[~present]
     assert (empty[:, 3] == -1).all() and (empty[:, -1] == -1).all()
@@ -277,10 +278,11 @@ def test_lane_corners_are_each_leafs_first_triangle(collapse):
     corners = lane_corners(lanes, bvh.nodes, bvh.prim_order, v, f)
     assert corners.shape == (wide.count, CORNER_ROWS, 8) and corners.dtype == np.float32
     leaves = 0
+    leaf = is_leaf(bvh.nodes)
     for r, c in zip(*np.nonzero(lanes >= -1)):
         node = lanes[r, c]
         got = corners[r, :, c]
-        if node >= 0 and bvh.is_leaf[node]:
+        if node >= 0 and leaf[node]:
             first = bvh.nodes["a"][node]
             tri = v[f[bvh.prim_order[first]]]
             least = min(tuple(np.roll(tri, -k, axis=0).ravel()) for k in range(3))
@@ -288,16 +290,16 @@ def test_lane_corners_are_each_leafs_first_triangle(collapse):
             leaves += 1
         else:
             assert (got == 0).all()
-    assert leaves == int(bvh.is_leaf.sum())
+    assert leaves == int(is_leaf(bvh.nodes).sum())
     if collapse:
-        assert (bvh.nodes["b"][bvh.is_leaf] < -1).any()   # leaves of several triangles
+        assert (bvh.nodes["b"][is_leaf(bvh.nodes)] < -1).any()   # leaves of several triangles
 
 
 def _device_moments(bvh, wide, order):
     buf = make_moments(bvh.ctx, bvh.tree, bvh.mesh, wide, order)
     rows = ROWS_ORDER1 if order == 1 else ROWS_ORDER2
     shape = (wide.count, rows + CORNER_ROWS, wide.width) \
-        if wide is not None and wide.packed and wide.count else (bvh.num_nodes, rows)
+        if wide is not None and wide.packed and wide.count else (bvh.tree.num_nodes, rows)
     got = np.empty(shape, np.float32)
     cl.enqueue_copy(bvh.ctx.queue, got, buf, is_blocking=True)
     bvh.ctx.memory.free(buf)
@@ -321,14 +323,14 @@ def test_device_moments_are_the_twins_bit_for_bit(case):
     else:
         v, f = meshes.soup(2000, 3, 0.05, spread="normal")
     bvh = lbvh.build(v, f, **kw)
-    assert wm.device_can_make(bvh.ctx, bvh.num_nodes, 2)
+    assert wm.device_can_make(bvh.ctx, bvh.tree.num_nodes, 2)
     for order in (1, 2):
         twin = node_moments(bvh.nodes, bvh.prim_order, bvh.root, v, f, order)
         assert np.array_equal(_device_moments(bvh, None, order), twin)
         for width in (4, 8):
             wide = bvh.query_data.wide_records(width=width)
             if not wide.count:
-                assert bvh.num_nodes == 1   # a root leaf: no records, one row per node
+                assert bvh.tree.num_nodes == 1   # a root leaf: no records, one row per node
                 assert np.array_equal(_device_moments(bvh, wide, order), twin)
                 continue
             lanes = read_lanes(bvh.ctx, wide)
@@ -474,7 +476,7 @@ def test_moments_without_device_doubles_are_the_twins(monkeypatch):
     v, f = meshes.soup(800, 3, 0.05, spread="normal")
     bvh = lbvh.build(v, f)
     ctx = bvh.ctx
-    assert wm.device_can_make(ctx, bvh.num_nodes, 2)
+    assert wm.device_can_make(ctx, bvh.tree.num_nodes, 2)
     too_many = ctx.memory.max_alloc // (8 * wm.TERMS[2]) + 1
     assert not wm.device_can_make(ctx, too_many, 2)
     assert wm.device_can_make(ctx, too_many, 1) == \

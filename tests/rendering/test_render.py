@@ -227,13 +227,13 @@ def test_ambient_occlusion_of_a_floor_under_a_ceiling():
     diagonal = float(np.linalg.norm(v.max(0) - v.min(0)))
     # Reach below the ceiling: nothing occludes; far beyond it: almost everything does
     # (the ceiling covers all but directions within atan(0.5/20) of the horizon).
-    short = ambient_occlusion(occluded, v, f, hits.prim, hits.u, hits.v, dirs, 16,
+    short = ambient_occlusion(occluded, v, f, (hits.prim, hits.u, hits.v), dirs, 16,
                               distance=0.4 / diagonal)
     assert short.tolist() == [1.0] * 64
-    long = ambient_occlusion(occluded, v, f, hits.prim, hits.u, hits.v, dirs, 16, distance=1.0)
+    long = ambient_occlusion(occluded, v, f, (hits.prim, hits.u, hits.v), dirs, 16, distance=1.0)
     assert (long <= 1 / 16).all()
     with pytest.raises(ValueError, match="ao samples"):
-        ambient_occlusion(occluded, v, f, hits.prim, hits.u, hits.v, dirs, 0)
+        ambient_occlusion(occluded, v, f, (hits.prim, hits.u, hits.v), dirs, 0)
 
 
 def test_depth_and_normals_match_the_oracle_reference_images(scenes):

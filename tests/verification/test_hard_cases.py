@@ -35,7 +35,7 @@ import pytest
 import lbvh
 from lbvh.verification import check, hard_cases, meshes, rules, runner
 from lbvh.device import get_context
-from lbvh.layout import NODE_DTYPE
+from lbvh.layout import NODE_DTYPE, is_leaf
 from lbvh.verification.oracle import brute_force
 
 BUILDERS = list(runner.BUILDERS)
@@ -140,16 +140,16 @@ def test_one_point_has_zero_extent_and_nothing_to_hit():
     assert not judge("one_point").ref.hit.any()
     for builder in BUILDERS:
         bvh = runner.build_with(builder, c.vertices, c.faces, c.origins, c.directions)
-        assert (bvh.lower == 1.5).all() and (bvh.upper == 1.5).all()
+        assert (bvh.nodes["lower"] == 1.5).all() and (bvh.nodes["upper"] == 1.5).all()
 
 
 def test_flat_scenes_have_flat_boxes():
     flat = lbvh.build(case("flat_plane").vertices, case("flat_plane").faces)
-    assert (flat.lower[:, 2] == 0).all() and (flat.upper[:, 2] == 0).all()
+    assert (flat.nodes["lower"][:, 2] == 0).all() and (flat.nodes["upper"][:, 2] == 0).all()
     line = case("line_of_triangles")
     bvh = lbvh.build(line.vertices, line.faces, builder="sah")
-    assert (bvh.upper[:, 2] == bvh.lower[:, 2]).all()
-    assert (bvh.upper[:, 1] - bvh.lower[:, 1] <= 1e-3).all()
+    assert (bvh.nodes["upper"][:, 2] == bvh.nodes["lower"][:, 2]).all()
+    assert (bvh.nodes["upper"][:, 1] - bvh.nodes["lower"][:, 1] <= 1e-3).all()
 
 
 def test_zero_area_mix_is_mostly_degenerate_and_those_are_never_hit():
@@ -244,7 +244,7 @@ def test_an_underflowing_edge_function_gives_no_false_hit(options):
     o, d = np.float32([[0, 0.5, 0]]), np.float32([[1, 0, 0]])
     assert not brute_force(v, f, o, d).hit[0]
     bvh = lbvh.build(v, f, **options)
-    assert len(bvh.leaf_nodes) == 1  # one leaf: the sliver is tested
+    assert is_leaf(bvh.nodes).sum() == 1  # one leaf: the sliver is tested
     assert not bvh.intersect(o, d).hit[0]
 
 
