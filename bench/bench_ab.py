@@ -94,8 +94,10 @@ print(json.dumps(out))
 def run(checkout: Path, scene: str, rays: str, repeats: int, stem: str, queries: list[str],
         points: int) -> dict:
     env = dict(os.environ, PYTHONPATH=str(checkout))
-    out = subprocess.run([sys.executable, "-c", WORKER, str(checkout), str(HERE), scene, rays,
-                          str(repeats), stem, ",".join(queries), str(points)],
+    # each checkout with its own bench helpers (common, bench_traverse): they follow
+    # its package's module paths
+    out = subprocess.run([sys.executable, "-c", WORKER, str(checkout), str(checkout / "bench"),
+                          scene, rays, str(repeats), stem, ",".join(queries), str(points)],
                          capture_output=True, text=True, env=env, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
