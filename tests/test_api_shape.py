@@ -150,3 +150,19 @@ def test_the_signatures_read_the_same_as_the_code():
         named = [p for p in sig.parameters.values()
                  if p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL) and p.name != "self"]
         assert len(named) <= MAX_PARAMETERS and "options" in sig.parameters, name
+
+
+def main() -> None:
+    """``python tests/test_api_shape.py``: the counts the tests bound, printed."""
+    members = sorted(m for m in dir(lbvh.BVH) if not m.startswith("_"))
+    found = public_functions()
+    long = [(len(named_parameters(n)), w) for w, n in found if len(named_parameters(n)) > 8]
+    naming = [w for w, n in found if "invalid_rays" in named_parameters(n)]
+    print(f"BVH public members: {len(members)}")
+    print(f"public functions: {len(found)}, with more than {MAX_PARAMETERS} named parameters: "
+          f"{len(long)} {sorted(long, reverse=True)}")
+    print(f"signatures naming invalid_rays: {len(naming)} {naming}")
+
+
+if __name__ == "__main__":
+    main()
