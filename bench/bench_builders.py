@@ -44,7 +44,8 @@ rounds that run every builder once, so that the machine's noise hits all alike):
 
 Builders: the device LBVH with 30-bit, 63-bit and automatic Morton keys, each
 without and with the SAH leaf collapse (``max_leaf_size`` 8), automatic keys
-with treelet restructuring (without and with the collapse), the host top-down
+with treelet restructuring (without and with the collapse), the device PLOC
+build (``builder="ploc"``, Meister & Bittner 2018, radius 16), the host top-down
 median and midpoint splits (``lbvh/builders/topdown.py``, leaves of one
 triangle), the serial SAH reference and the SAH reference costed by a 64x48 grid of
 the scene camera's rays (``sah+rays``, :mod:`lbvh.builders.ray_sampled`), and as peers when installed Embree (embreex) and warp-lang's CPU
@@ -102,9 +103,9 @@ QUICK_RAYS = (128, 96)
 CHART_RAYS = 10_000_000
 
 REFERENCE = "sah"
-#: Families of our trees (traced by our kernel): the device LBVH, the host top-down
-#: median / midpoint splits and the SAH reference.
-OUR_FAMILIES = ("lbvh", "topdown", "sbvh", "sah")
+#: Families of our trees (traced by our kernel): the device LBVH, the device PLOC, the
+#: host top-down median / midpoint splits and the SAH reference.
+OUR_FAMILIES = ("lbvh", "ploc", "topdown", "sbvh", "sah")
 #: The host SBVH builds about 4,500 triangles a second (Sponza, 262K: 56 s): scenes
 #: above this size leave it out (a 1M-triangle scene would take about 4 minutes a build).
 SBVH_MAX_TRIANGLES = 400_000
@@ -125,8 +126,9 @@ def ours(variant: Variant) -> bool:
 
 def our_variants() -> list[Variant]:
     """The device LBVH (3 key widths x with/without collapse), the automatic width with
-    treelet restructuring (with/without collapse), the host median and midpoint splits
-    (leaves of one triangle, their default) and the SAH reference."""
+    treelet restructuring (with/without collapse), the device PLOC (its default
+    radius), the host median and midpoint splits (leaves of one triangle, their
+    default) and the SAH reference."""
     out = []
     for bits in (30, 63, "auto"):
         out.append(Variant(f"lbvh-{bits}", "lbvh", {"key_bits": bits}))
@@ -136,6 +138,7 @@ def our_variants() -> list[Variant]:
     out.append(Variant(f"lbvh-auto+treelets{TREELET_ROUNDS}", "lbvh", treelets))
     out.append(Variant(f"lbvh-auto+treelets{TREELET_ROUNDS}+collapse", "lbvh",
                        {**treelets, "collapse": True, **SAH_OPTIONS}))
+    out.append(Variant("ploc", "ploc", {"builder": "ploc"}))
     for rule in ("median", "midpoint"):
         out.append(Variant(rule, "topdown", {"builder": rule}))
     out.append(Variant("sbvh", "sbvh", {"builder": "sbvh", **SAH_OPTIONS}))
@@ -401,7 +404,7 @@ def warm_up(ctx: dev.Context, variants: list[Variant]) -> None:
     v, f = meshes.sphere(2000)
     o, d = np.zeros((1, 3), np.float32), np.float32([[0.0, 0.0, 1.0]])
     for variant in variants:
-        if variant.family == "lbvh":
+        if variant.family in ("lbvh", "ploc"):
             bvh = build_tree(variant, v, f, ctx)
             for order in ("ordered", "global"):
                 intersect(bvh, o, d, order=order)
@@ -735,14 +738,15 @@ PEER_LINES = ("-", "--", ":", "-.", (0, (5, 1, 1, 1)))
 
 
 #: Colour and marker of the builders that are not LBVH variants.
-HOST_STYLES = {"median": ("C5", "^"), "midpoint": ("C6", "v"), "sbvh": ("C9", "P"),
+HOST_STYLES = {"ploc": ("C8", "h"), "median": ("C5", "^"), "midpoint": ("C6", "v"),
+               "sbvh": ("C9", "P"),
                REFERENCE: ("C3", "*"), f"{REFERENCE}+rays": ("C4", "*")}
 
 
 def point_style(name: str, family: str) -> dict:
     """LBVH: colour by key width, circle, square with the leaf collapse, diamond with
-    treelets (plus with treelets and collapse); median, midpoint, sah: a colour and a
-    triangle or star of their own."""
+    treelets (plus with treelets and collapse); ploc, median, midpoint, sah: a colour
+    and a hexagon, triangle or star of their own."""
     if family == "lbvh":
         colour = {"30": "C0", "63": "C1", "auto": "C2"}.get(name.split("-")[-1].split("+")[0], "C7")
         marker = ("P" if "collapse" in name else "D") if "treelets" in name else \

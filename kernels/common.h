@@ -37,6 +37,21 @@ inline float4 sqrt4(float4 v) { return sqrt(v); }
 inline float8 sqrt8(float8 v) { return sqrt(v); }
 #endif
 
+/* A triangle's box PREFETCH_AHEAD slots ahead asked into the cache (refit.cl,
+ * ploc.cl: boxes gathered in slot order, randomly in memory when the mesh's
+ * triangles are not in spatial order). OpenCL's prefetch() does nothing on PoCL;
+ * CLANG_PREFETCH=1, which the host sets where the compiler is clang (PoCL), uses
+ * clang's builtin. */
+#ifndef CLANG_PREFETCH
+#define CLANG_PREFETCH 0
+#endif
+#define PREFETCH_AHEAD 32
+#if CLANG_PREFETCH
+#define PREFETCH_BOX(p) __builtin_prefetch(p)
+#else
+#define PREFETCH_BOX(p) prefetch(p, 2)
+#endif
+
 /* The chunk [first, last) of `count` items that work-item `gid` loops over;
  * one item per work-item on a GPU, a long contiguous run on a CPU. */
 inline int chunk_first(int gid, int per_item, int count) {

@@ -38,12 +38,6 @@
  * prefetched (1.2-1.5x on a random soup of 1M triangles). OpenCL's prefetch()
  * does nothing on PoCL; CLANG_PREFETCH=1, which the host sets where the
  * compiler is clang (PoCL), uses clang's builtin instead. */
-#define PREFETCH_AHEAD 32
-#if CLANG_PREFETCH
-#define PREFETCH_BOX(p) __builtin_prefetch(p)
-#else
-#define PREFETCH_BOX(p) prefetch(p, 2)
-#endif
 
 inline void store_box(__global float *node_floats, int node, float3 lo, float3 hi) {
     store_float3(node_floats + 8 * node, lo);

@@ -40,8 +40,8 @@ list; tests/test_layers.py checks it folder by folder):
 """
 from . import data, layout
 from .api import build, build_parts, build_scene, load
-from .builders.options import (CollapseOptions, LBVHOptions, SAHOptions, SBVHOptions,
-                               SplitOptions)
+from .builders.options import (CollapseOptions, LBVHOptions, PLOCOptions, SAHOptions,
+                               SBVHOptions, SplitOptions)
 from .builders.ray_sampled import RaySample
 from .bvh import BVH
 from .scene import Scene
@@ -65,6 +65,6 @@ if _self_test not in CONTEXT_CHECKS:
     CONTEXT_CHECKS.append(_self_test)
 
 __all__ = ["build", "build_parts", "build_scene", "load", "BVH", "Scene", "Hits", "AllHits", "Closest", "Overlaps", "LBVHOptions",
-           "SAHOptions", "SplitOptions", "SBVHOptions", "CollapseOptions", "QueryOptions", "RaySample",
+           "SAHOptions", "SplitOptions", "SBVHOptions", "PLOCOptions", "CollapseOptions", "QueryOptions", "RaySample",
            "render", "Camera", "load_scene", "sah_cost", "tree_quality", "BVHValidationError",
            "DeviceError", "data", "layout", "__version__"]

@@ -17,10 +17,10 @@ from typing import Any
 import numpy as np
 
 from . import device as dev
-from .builders import pipeline, sah, sbvh, topdown
+from .builders import pipeline, ploc, sah, sbvh, topdown
 from .builders.collapse import collapse
-from .builders.options import (SPLIT_BUILDERS, CollapseOptions, LBVHOptions, SAHOptions,
-                               SBVHOptions, SplitOptions, make, options_from)
+from .builders.options import (SPLIT_BUILDERS, CollapseOptions, LBVHOptions, PLOCOptions,
+                               SAHOptions, SBVHOptions, SplitOptions, make, options_from)
 from .bvh import SAVE_FORMAT_VERSION, BVH
 from .layout import NODE_DTYPE
 from .mesh import MissingFileError, as_mesh
@@ -29,7 +29,7 @@ from .scene import Scene
 from .tree import Mesh
 
 #: The options objects ``lbvh.build(options=...)`` takes, one per builder.
-BuildOptions = LBVHOptions | SAHOptions | SplitOptions | SBVHOptions
+BuildOptions = LBVHOptions | SAHOptions | SplitOptions | SBVHOptions | PLOCOptions
 
 
 def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: Any = None,
@@ -47,14 +47,17 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
             the host, the reference), or the course's top-down object splits on the
             host, ``"median"`` and ``"midpoint"`` (:mod:`lbvh.builders.topdown`), or
             ``"sbvh"``, spatial splits (Stich et al. 2009, :mod:`lbvh.builders.sbvh`): a
-            triangle may sit in several leaves (see :class:`lbvh.SBVHOptions`).
+            triangle may sit in several leaves (see :class:`lbvh.SBVHOptions`), or
+            ``"ploc"``: bottom-up clustering on the device (Meister & Bittner 2018,
+            :mod:`lbvh.builders.ploc`; see :class:`lbvh.PLOCOptions`).
         device: a device name (see :mod:`lbvh.device`), a ``pyopencl.Device``, or
             ``None`` for ``$LBVH_DEVICE`` / PoCL's CPU device.
         collapse: ``"lbvh"`` only: ``True`` or a :class:`lbvh.CollapseOptions`: after the
             build, merge subtrees into leaves where the SAH says testing their triangles
             is cheaper (:mod:`lbvh.builders.collapse`).
         options: the builder's options as data, :class:`lbvh.LBVHOptions`,
-            :class:`lbvh.SAHOptions`... (defaults documented there).
+            :class:`lbvh.SAHOptions`, :class:`lbvh.PLOCOptions`... (defaults documented
+            there).
         progress: a progress bar on stderr for the long builds (the SAH reference
             over 200K triangles or more): ``None`` (default) when stderr is a
             terminal, ``True`` or ``False`` to force it (:mod:`lbvh.progress`).
@@ -67,8 +70,8 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
             (``"median"``, ``"midpoint"``); ``rays`` (an ``(origins, directions)``
             pair or :class:`lbvh.RaySample`), ``ray_prior``, ``ray_candidates``
             (``"sah"``): splits costed by a sample of the rays the tree is for (see
-            :class:`lbvh.SAHOptions`). Any other name is refused with a ``ValueError``
-            naming it.
+            :class:`lbvh.SAHOptions`); ``radius`` of ``PLOCOptions`` (``"ploc"``).
+            Any other name is refused with a ``ValueError`` naming it.
 
     Returns:
         :class:`lbvh.BVH` whose buffers stay on the device. ``bvh.report()``
@@ -91,10 +94,10 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
     else:
         v, f = as_mesh(vertices, faces)
     ctx = dev.get_context(device)
-    if builder == "lbvh" and not pipeline.fits(ctx, len(f)):
+    if builder in ("lbvh", "ploc") and not pipeline.fits(ctx, len(f)):
         # beyond the device's largest buffer: parts that fit, one scene
-        return build_parts(v, f, pipeline.max_triangles(ctx), device=device, collapse=collapse,
-                           options=options, progress=progress, **fields)
+        return build_parts(v, f, pipeline.max_triangles(ctx), builder=builder, device=device,
+                           collapse=collapse, options=options, progress=progress, **fields)
     with ctx.lock:   # one call's commands at a time on the context's queue
         t0 = time.perf_counter()
         mesh = Mesh.upload(ctx, v, f)
@@ -117,6 +120,12 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
             return BVH(mesh, tree)
         if builder in SPLIT_BUILDERS:
             tree = topdown.build_tree(ctx, mesh, builder, build_options)
+            tree.report.upload_seconds += upload
+            return BVH(mesh, tree)
+        if builder == "ploc":
+            with ctx.memory.scope() as mem:   # every buffer of the build
+                tree = ploc.build_tree(ctx, mesh, build_options, mem)
+                mem.close()
             tree.report.upload_seconds += upload
             return BVH(mesh, tree)
         return _build_lbvh(ctx, mesh, upload, build_options, collapse_options)

@@ -15,6 +15,8 @@ options                        for
                                top-down object splits (:mod:`lbvh.builders.topdown`)
 :class:`SBVHOptions`           ``builder="sbvh"``: spatial splits (Stich et al. 2009,
                                :mod:`lbvh.builders.sbvh`)
+:class:`PLOCOptions`           ``builder="ploc"``: bottom-up clustering on the device
+                               (Meister & Bittner 2018, :mod:`lbvh.builders.ploc`)
 :class:`CollapseOptions`       ``collapse=True``: the leaf collapse after an LBVH build
 =============================  =====================================================
 """
@@ -35,7 +37,7 @@ from .restructure import (TREELET_LEAVES, TREELET_MIN_LEAVES, check_min_leaves, 
 #: ``key_bits`` as the caller gives it -> bits of a key (``None``: chosen per mesh).
 KEY_CHOICES = {"auto": None, 30: 32, 63: 64, "30": 32, "63": 64}
 
-BUILDERS = ("lbvh", "sah", "median", "midpoint", "sbvh")
+BUILDERS = ("lbvh", "sah", "median", "midpoint", "sbvh", "ploc")
 #: The host builders that split top down without a cost model.
 SPLIT_BUILDERS = ("median", "midpoint")
 
@@ -158,6 +160,36 @@ class SBVHOptions:
             raise ValueError(f"object_below: {self.object_below!r}; expected an integer >= 1")
 
 
+#: PLOC's search radius by default (bench/bench_ploc.py compares radii).
+PLOC_RADIUS = 16
+#: The largest search radius: each cluster tries 2 * radius candidates in every step
+#: (one compile per radius: kernels/ploc.cl's RADIUS).
+PLOC_MAX_RADIUS = 256
+
+
+@dataclass(frozen=True)
+class PLOCOptions:
+    """The device PLOC build (Meister & Bittner 2018, :mod:`lbvh.builders.ploc`).
+
+    Attributes:
+        radius: each cluster looks for its nearest neighbour among this many
+            clusters on either side in Morton order (default 16; an integer from
+            1 to 256). A larger radius finds better pairs (most often a lower SAH
+            cost) for a longer build.
+
+    The leaves are single triangles sorted by 63-bit Morton codes (``key_bits``
+    is not an option of this builder: 30 is refused, ``"auto"`` and 63 are the
+    same here).
+    """
+    radius: int = PLOC_RADIUS
+
+    def __post_init__(self) -> None:
+        if isinstance(self.radius, bool) or not isinstance(self.radius, (int, np.integer)) \
+                or not 1 <= self.radius <= PLOC_MAX_RADIUS:
+            raise ValueError(f"radius: {self.radius!r}; expected an integer from 1 to "
+                             f"{PLOC_MAX_RADIUS}")
+
+
 @dataclass(frozen=True)
 class CollapseOptions:
     """The leaf collapse: the same SAH constants as :class:`SAHOptions`;
@@ -183,8 +215,9 @@ def make(cls: type, given: dict[str, Any], what: str) -> Any:
 
 
 def options_from(builder: str, collapse: "bool | CollapseOptions", given: dict[str, Any],
-                 options: "LBVHOptions | SAHOptions | SplitOptions | None" = None
-                 ) -> tuple[LBVHOptions | SAHOptions | SplitOptions, CollapseOptions | None]:
+                 options: "LBVHOptions | SAHOptions | SplitOptions | PLOCOptions | None" = None
+                 ) -> tuple[LBVHOptions | SAHOptions | SplitOptions | PLOCOptions,
+                            CollapseOptions | None]:
     """The options objects of ``lbvh.build(builder=..., collapse=..., options=..., **given)``.
 
     ``options`` (an options object of the builder) and ``collapse`` (``True``
@@ -192,14 +225,15 @@ def options_from(builder: str, collapse: "bool | CollapseOptions", given: dict[s
     ``builder="lbvh"`` the names of :class:`LBVHOptions` in ``given`` go to
     the build and, with ``collapse``, the others to :class:`CollapseOptions`;
     with ``builder="sah"`` all go to :class:`SAHOptions`, with ``"median"`` or
-    ``"midpoint"`` to :class:`SplitOptions`. Raises ``ValueError``
-    on an unknown builder or name, a bad value, an option of the other builder,
-    or the same option given both ways.
+    ``"midpoint"`` to :class:`SplitOptions`, with ``"ploc"`` to :class:`PLOCOptions`
+    (the LBVH's options checked and dropped, as for the host builders). Raises
+    ``ValueError`` on an unknown builder or name, a bad value, an option of the other
+    builder, or the same option given both ways.
     """
     if builder not in BUILDERS:
         raise ValueError(f"builder: {builder!r}; expected one of {', '.join(BUILDERS)}")
-    expected = {"lbvh": LBVHOptions, "sah": SAHOptions, "sbvh": SBVHOptions}.get(builder,
-                                                                               SplitOptions)
+    expected = {"lbvh": LBVHOptions, "sah": SAHOptions, "sbvh": SBVHOptions,
+                "ploc": PLOCOptions}.get(builder, SplitOptions)
     if options is not None:
         if not isinstance(options, expected):
             raise ValueError(f"options: {type(options).__name__} given; builder={builder!r} "
@@ -229,6 +263,16 @@ def options_from(builder: str, collapse: "bool | CollapseOptions", given: dict[s
         _host_builder_ignores_lbvh_options(builder, given)
         cls = SBVHOptions if builder == "sbvh" else SplitOptions
         return make(cls, given, f"the {builder} builder"), None
+    if builder == "ploc":
+        if collapse:
+            raise ValueError("collapse: only for builder='lbvh' (collapse a PLOC tree's leaves "
+                             "with lbvh.api.collapse_leaves(bvh))")
+        key_bits = given.get("key_bits", "auto")
+        _host_builder_ignores_lbvh_options("ploc", given)   # checks key_bits
+        if KEY_CHOICES[key_bits] == 32:
+            raise ValueError(f"key_bits: {key_bits!r}; the ploc builder sorts 63-bit Morton "
+                             "codes (63 or 'auto')")
+        return make(PLOCOptions, given, "the ploc builder"), None
     if builder == "sah":
         if collapse:
             raise ValueError("collapse: only for builder='lbvh' (the SAH builder already makes "
@@ -246,7 +290,7 @@ def options_from(builder: str, collapse: "bool | CollapseOptions", given: dict[s
 
 
 def _host_builder_ignores_lbvh_options(builder: str, given: dict[str, Any]) -> None:
-    """The LBVH's own options, given to a host builder (the command line passes its
+    """The LBVH's own options, given to another builder (the command line passes its
     defaults to every builder): checked, then dropped from ``given``; treelet rounds,
     which would change the tree, are refused."""
     lbvh_only = LBVHOptions(**{k: given.pop(k) for k in field_names(LBVHOptions) & set(given)})

@@ -34,6 +34,7 @@ from ..builders import bounds
 from ..builders import collapse
 from ..builders import emit
 from ..builders import morton
+from ..builders import ploc
 from ..queries import (all_hits, closest, instance_closest, instance_hits, instances, overlap,
                        ray_order, rays, winding, winding_moments)
 from ..builders import refit
@@ -114,6 +115,10 @@ def kernel_variants(is_cpu: bool, *, exact_divide: bool | None = None,
     for leaves in (5, restructure.TREELET_LEAVES):   # the default and the bench's smaller size
         add(restructure.KERNEL_FILE, {"TREELET_LEAVES": leaves})
     add(collapse.KERNEL_FILE, {})
+    # ploc.cl: the default search radius, the device's lanes, clang's prefetch or not
+    for ctx in ctxs:
+        add(ploc.KERNEL_FILE, ploc.kernel_defines(ploc.PLOC_RADIUS, ctx.is_cpu,
+                                                  ctx.compiler_is_clang))
     add(ray_order.KERNEL_FILE, {})
     for width in wide.WIDTHS:                                   # wide_level, wide_records
         add(wide.KERNEL_FILE, {"WIDTH": width})

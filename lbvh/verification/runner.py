@@ -33,6 +33,7 @@ BUILDERS: dict[str, dict[str, Any]] = {
     "median": {"builder": "median"},
     "midpoint": {"builder": "midpoint"},
     "sbvh": {"builder": "sbvh"},
+    "ploc": {"builder": "ploc"},
 }
 
 #: Builders that cannot run a case in reasonable time, with the reason (reported, not run).

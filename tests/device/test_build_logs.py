@@ -97,7 +97,8 @@ def _public_calls(ctx: dev.Context, monkeypatch) -> None:
              lbvh.build(v, f, device=ctx, treelet_rounds=2),
              lbvh.build(v, f, device=ctx, treelet_rounds=1, collapse=True, max_leaf_size=4),
              lbvh.build(v, f, device=ctx, builder="sah"),
-             lbvh.build(v, f, device=ctx, builder="sbvh")]
+             lbvh.build(v, f, device=ctx, builder="sbvh"),
+             lbvh.build(v, f, device=ctx, builder="ploc")]
     assert trees[3].tree.report.key_bits == 63 and trees[2].tree.report.key_bits == 30
     many = -(-PACKETS_FROM // len(o))
     for bvh in trees:
