@@ -458,10 +458,16 @@ def trace_buffers(target: QueryTarget, rays: DeviceRays, *, any_hit: bool = Fals
     trace by packets of 8 rays (:mod:`lbvh.queries.packets`: the same answers bit for
     bit), ``None`` where :func:`lbvh.queries.packets.packets_apply` says so.
     """
-    opts = query_options("trace", options, fields)
+    return _trace_buffers(target, rays, any_hit, query_options("trace", options, fields),
+                          outputs or HitBuffers(), defines, packets)
+
+
+def _trace_buffers(target: QueryTarget, rays: DeviceRays, any_hit: bool, opts: QueryOptions,
+                   out: HitBuffers, defines: dict[str, int | str] | None,
+                   packets: bool | None) -> DeviceHits:
+    """:func:`trace_buffers` with checked options (the host calls of this module)."""
     triangle_test, counters, node_order = opts.triangle_test, opts.counters, opts.order
     stack_size = opts.stack_size
-    out = outputs or HitBuffers()
     hits, flags, counter_buf, scratch = out.hits, out.flags, out.counters, out.scratch
     order, wait_for = rays.order, list(rays.ready)
     target = query_target(target)   # a BVH gives its query data
@@ -521,23 +527,17 @@ def _trace(target: QueryTarget, origins: Any, directions: Any, tmin: Any, tmax: 
            opts: QueryOptions) -> Hits | DeviceHitArrays:
     """Trace the rays with checked options: host arrays in batches, pyopencl arrays in
     place."""
-    triangle_test, counters, stack_size = opts.triangle_test, opts.counters, opts.stack_size
-    invalid_rays, node_order = opts.invalid_rays, opts.order
-    batch_size = opts.batch(DEFAULT_BATCH)
     if is_device_array(origins) or is_device_array(directions):
-        return _trace_arrays(target, origins, directions, tmin, tmax, any_hit, triangle_test,
-                             counters, stack_size, invalid_rays, node_order)
-    rays = check_rays(origins, directions, tmin, tmax, invalid_rays=invalid_rays)
+        return _trace_arrays(target, origins, directions, tmin, tmax, any_hit, opts)
+    rays = check_rays(origins, directions, tmin, tmax, invalid_rays=opts.invalid_rays)
     geometry = (target.mesh.vertices, target.mesh.faces)
     if rays.invalid is None:
-        hits = _trace_rays(target, rays, any_hit, triangle_test, counters, batch_size, stack_size,
-                           node_order)
+        hits = _trace_rays(target, rays, any_hit, opts)
         hits.geometry = geometry
         return hits
     # invalid_rays="miss" and some rays are bad: the good ones are traced alone
     good = np.flatnonzero(~rays.invalid)
-    part = _trace_rays(target, rays.take(good), any_hit, triangle_test, counters, batch_size,
-                       stack_size, node_order)
+    part = _trace_rays(target, rays.take(good), any_hit, opts)
     n = len(rays)
     hits = Hits(t=np.full(n, np.inf, np.float32), prim=np.full(n, -1, np.int32),
                 u=np.zeros(n, np.float32), v=np.zeros(n, np.float32), overflow=np.zeros(n, bool),
@@ -551,13 +551,12 @@ def _trace(target: QueryTarget, origins: Any, directions: Any, tmin: Any, tmax: 
     return hits
 
 
-def _trace_rays(target: QueryTarget, rays: Rays, any_hit: bool, triangle_test: str,
-                counters: bool, batch_size: int, stack_size: int | None,
-                node_order: str = "ordered") -> Hits:
-    """Trace checked rays, all good, in batches of ``batch_size``."""
+def _trace_rays(target: QueryTarget, rays: Rays, any_hit: bool, opts: QueryOptions) -> Hits:
+    """Trace checked rays, all good, in batches of the options' ``batch_size``."""
     n = len(rays)
+    counters, batch_size = opts.counters, opts.batch(DEFAULT_BATCH)
     if target.ctx.is_cpu and 0 < n <= batch_size and not counters:
-        return _trace_in_place(target, rays, any_hit, triangle_test, stack_size, node_order)
+        return _trace_in_place(target, rays, any_hit, opts)
     planes = np.empty((4, n), np.float32)
     flag = np.zeros(n, np.int32)
     count = np.zeros((n, 2), np.int32) if counters else None
@@ -590,11 +589,9 @@ def _trace_rays(target: QueryTarget, rays: Rays, any_hit: bool, triangle_test: s
                 order, ups = ray_order(ctx, bufs["o"], bufs["d"], m, *target.tree.root_box())
             device_rays = DeviceRays(m, bufs["o"], bufs["d"], bufs["lo"], bufs["hi"], stride,
                                      order, tuple(ups))
-            result = trace_buffers(target, device_rays, any_hit=any_hit,
-                                   triangle_test=triangle_test, counters=counters,
-                                   stack_size=stack_size, order=node_order,
-                                   outputs=HitBuffers(bufs["hits"], bufs["flags"],
-                                                      bufs.get("count")))
+            result = _trace_buffers(target, device_rays, any_hit, opts,
+                                    HitBuffers(bufs["hits"], bufs["flags"], bufs.get("count")),
+                                    None, None)
             if m == n:   # one batch: the four planes are the buffer as it is, one copy
                 cl.enqueue_copy(queue, planes, bufs["hits"], wait_for=[result.event],
                                 is_blocking=False)
@@ -626,8 +623,7 @@ def _hits_of(planes: np.ndarray, flag: np.ndarray, count: np.ndarray | None = No
                 tris_tested=None if count is None else count[:, 1].copy())
 
 
-def _trace_in_place(target: QueryTarget, rays: Rays, any_hit: bool, triangle_test: str,
-                    stack_size: int | None, node_order: str) -> Hits:
+def _trace_in_place(target: QueryTarget, rays: Rays, any_hit: bool, opts: QueryOptions) -> Hits:
     """:func:`_trace_rays` in one batch on a device that shares the host's memory (a
     CPU): the kernel reads the checked rays' arrays and writes the answers' arrays
     themselves (:meth:`lbvh.device.DeviceMemory.host_view`), where the batches copy
@@ -654,10 +650,9 @@ def _trace_in_place(target: QueryTarget, rays: Rays, any_hit: bool, triangle_tes
         if worth_ordering(n, target.tree.num_nodes):
             order, ups = ray_order(ctx, bufs[0], bufs[1], n, *target.tree.root_box())
         device_rays = DeviceRays(n, *bufs, stride, order, tuple(ups))
-        result = trace_buffers(target, device_rays, any_hit=any_hit, triangle_test=triangle_test,
-                               stack_size=stack_size, order=node_order,
-                               outputs=HitBuffers(out.buffers[0], out.buffers[1],
-                                                  scratch=out.buffers[2]))
+        result = _trace_buffers(target, device_rays, any_hit, opts,
+                                HitBuffers(out.buffers[0], out.buffers[1],
+                                           scratch=out.buffers[2]), None, None)
         dev.read_host_views(ctx.queue, [(out.block_buffer, out.block)], wait_for=[result.event])
         read = True
     finally:
@@ -679,13 +674,13 @@ def _trace_in_place(target: QueryTarget, rays: Rays, any_hit: bool, triangle_tes
 # -- rays in pyopencl arrays ----------------------------------------------------
 
 def _trace_arrays(target: QueryTarget, origins: Any, directions: Any, tmin: Any, tmax: Any,
-                  any_hit: bool, triangle_test: str, counters: bool, stack_size: int | None,
-                  invalid_rays: str, node_order: str = "ordered") -> DeviceHitArrays:
+                  any_hit: bool, opts: QueryOptions) -> DeviceHitArrays:
     """Trace rays held in pyopencl arrays without a host round trip of the rays or the
     results: the values are checked on the device (:func:`lbvh.queries.rays.device_invalid`:
     a 4-byte read of how many are bad), bad ones raise (their first named, read back)
     or are reported as misses (their ``tmin`` set to NaN: the kernel does not trace them)."""
     ctx, q = target.ctx, target.ctx.queue
+    counters, invalid_rays = opts.counters, opts.invalid_rays
     given = device_array_rays(ctx, origins, directions, tmin, tmax)
     rays, n = given.rays, given.rays.count
     order = None
@@ -702,11 +697,10 @@ def _trace_arrays(target: QueryTarget, origins: Any, directions: Any, tmin: Any,
                                   *target.tree.root_box())
         wait_for += events
     if n:
-        out = trace_buffers(target, dataclasses.replace(rays, order=order, ready=tuple(wait_for)),
-                            any_hit=any_hit, triangle_test=triangle_test, counters=counters,
-                            stack_size=stack_size, order=node_order)
+        out = _trace_buffers(target, dataclasses.replace(rays, order=order, ready=tuple(wait_for)),
+                             any_hit, opts, HitBuffers(), None, None)
     else:   # nothing to launch; the options are checked all the same
-        kernel_defines(ctx, any_hit, triangle_test, counters, stack_size or 1)
+        kernel_defines(ctx, any_hit, opts.triangle_test, counters, opts.stack_size or 1, opts.order)
         out = DeviceHits(0, ctx.memory.alloc(16), ctx.memory.alloc(4),
                          ctx.memory.alloc(8) if counters else None, cl.enqueue_marker(q))
     done = [out.event]
