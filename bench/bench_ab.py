@@ -12,15 +12,18 @@ API on the default ``lbvh.build`` tree, on the bench camera's primary rays
 call. ``ao`` and ``ao-any`` time the same calls on bench_traverse's ambient-occlusion
 rays (one per hit pixel, from the checkout's own primary hits): incoherent rays.
 ``winding`` times ``bvh.winding_numbers`` at ``--points`` points drawn
-uniformly from the scene's box grown by a tenth each side (seed 0). ``one`` and
+uniformly from the scene's box grown by a tenth each side (seed 0);
+``closest-points`` and ``signed-distance`` time ``bvh.closest_points`` and
+``bvh.signed_distance`` at the same points. ``one`` and
 ``thousand`` time ``bvh.intersect`` of 1 and 1,000 of the camera's rays picked
 evenly over the image (the price of a call: the median of ``100 * --repeats``
 calls after 20 untimed ones). The report gives each checkout's median over the
 rounds and the ratio this / other (above 1: this checkout is slower), with the
 answers' agreement: the fraction of rays with the same answer (closest hit,
-one, thousand: the same triangle or miss; any hit: the same bool; winding: the
-same side of 1/2) and with the same bits (closest hit, one, thousand: ``t``;
-winding: the winding number).
+one, thousand, closest points: the same triangle or miss; any hit: the same bool;
+winding: the same side of 1/2; signed distance: the same sign) and with the same
+bits (closest hit, one, thousand: ``t``; closest points: the distance; winding,
+signed distance: the value).
 """
 from __future__ import annotations
 
@@ -38,6 +41,8 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
+#: The queries timed once a call (the others: 100 calls a repeat).
+WHOLE_QUERIES = ("closest", "any", "ao", "ao-any", "winding", "closest-points", "signed-distance")
 
 WORKER = r"""
 import sys, json, time
@@ -71,11 +76,14 @@ queries = {"closest": lambda: bvh.intersect(o, d), "any": lambda: bvh.occluded(o
            "ao": lambda: bvh.intersect(ao_rays()[0], ao_rays()[1], tmax=ao_rays()[2]),
            "ao-any": lambda: bvh.occluded(ao_rays()[0], ao_rays()[1], tmax=ao_rays()[2]),
            "winding": lambda: bvh.winding_numbers(pts),
+           "closest-points": lambda: bvh.closest_points(pts),
+           "signed-distance": lambda: bvh.signed_distance(pts),
            "one": lambda: bvh.intersect(o1, d1), "thousand": lambda: bvh.intersect(ok, dk)}
 out = {}
 for name in sys.argv[7].split(","):
     fn = queries[name]
-    whole = name in ("closest", "any", "winding", "ao", "ao-any")
+    whole = name in ("closest", "any", "winding", "ao", "ao-any", "closest-points",
+                     "signed-distance")   # WHOLE_QUERIES
     for _ in range(1 if whole else 20):
         fn()
     times = []
@@ -83,9 +91,10 @@ for name in sys.argv[7].split(","):
     for _ in range(calls):
         t0 = time.perf_counter(); r = fn(); times.append(time.perf_counter() - t0)
     out[name] = sorted(times)[len(times) // 2]
-    res = r if name in ("any", "ao-any", "winding") else r.t
+    res = {"closest-points": lambda r: r.distance}.get(name, lambda r: r if name in (
+        "any", "ao-any", "winding", "signed-distance") else r.t)(r)
     np.save(sys.argv[6] + f"-{name}.npy", res)
-    if name not in ("any", "ao-any", "winding"):
+    if name not in ("any", "ao-any", "winding", "signed-distance"):
         np.save(sys.argv[6] + f"-{name}-prim.npy", r.prim)
 print(json.dumps(out))
 """
@@ -110,7 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rounds", type=int, default=4)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--queries", nargs="+", default=["closest", "any"],
-                   choices=["closest", "any", "ao", "ao-any", "winding", "one", "thousand"])
+                   choices=["closest", "any", "ao", "ao-any", "winding", "closest-points",
+                            "signed-distance", "one", "thousand"])
     p.add_argument("--points", type=int, default=1 << 18)
     p.add_argument("--out", type=Path, default=HERE / "out" / "ab")
     args = p.parse_args(argv)
@@ -134,8 +144,9 @@ def main(argv: list[str] | None = None) -> int:
             a, b = np.load(tmp / f"this-{q}.npy"), np.load(tmp / f"other-{q}.npy")
             if q in ("any", "ao-any"):
                 same = bits = float(np.mean(a == b))
-            elif q == "winding":
-                same = float(np.mean((a > 0.5) == (b > 0.5)))
+            elif q in ("winding", "signed-distance"):   # the same side; the same bits
+                side = 0.5 if q == "winding" else 0.0
+                same = float(np.mean((a > side) == (b > side)))
                 bits = float(np.mean(a.view(np.uint32) == b.view(np.uint32)))
             else:   # the same triangle (or miss); and t bit for bit
                 same = float(np.mean(np.load(tmp / f"this-{q}-prim.npy")
@@ -145,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
             report.append({"scene": scene, "query": q, "this_s": ta, "other_s": tb,
                            "ratio": ta / tb, "same_answers": same, "same_bits": bits,
                            "rounds": {k: times[k][q] for k in times}})
-            digits = 1 if q in ("closest", "any", "ao", "ao-any", "winding") else 3
+            digits = 1 if q in WHOLE_QUERIES else 3
             lines.append(f"| {scene} | {q} | {1e3 * ta:.{digits}f} | {1e3 * tb:.{digits}f} | "
                          f"{ta / tb:.3f} | "
                          f"{same:.5f} | {bits:.5f} |")
