@@ -26,7 +26,7 @@ from .layout import NODE_DTYPE
 from .mesh import MissingFileError, as_mesh
 from .files import load_mesh
 from .scene import Scene
-from .tree import Mesh
+from .tree import Mesh, Tree
 
 #: The options objects ``lbvh.build(options=...)`` takes, one per builder.
 BuildOptions = LBVHOptions | SAHOptions | SplitOptions | SBVHOptions | PLOCOptions
@@ -109,25 +109,19 @@ def build(vertices: Any, faces: Any = None, *, builder: str = "lbvh", device: An
             build_options = _traced_ray_sample(ctx, mesh, build_options)
             traced = time.perf_counter() - t0
             tree = sah.build_tree(ctx, mesh, build_options, progress)
-            tree.report.upload_seconds += upload
-            if untraced:   # the sample's rays through the default LBVH are part of this build
-                tree.report.wall_seconds += traced
-                tree.report.phase_seconds["trace ray sample"] = traced
-            return BVH(mesh, tree)
+            # the sample's rays through the default LBVH, if traced here, are part of it
+            return BVH(mesh, _with_times(tree, upload, traced if untraced else None))
         if builder == "sbvh":
             tree = sbvh.build_tree(ctx, mesh, build_options, progress)
-            tree.report.upload_seconds += upload
-            return BVH(mesh, tree)
+            return BVH(mesh, _with_times(tree, upload))
         if builder in SPLIT_BUILDERS:
             tree = topdown.build_tree(ctx, mesh, builder, build_options)
-            tree.report.upload_seconds += upload
-            return BVH(mesh, tree)
+            return BVH(mesh, _with_times(tree, upload))
         if builder == "ploc":
             with ctx.memory.scope() as mem:   # every buffer of the build
                 tree = ploc.build_tree(ctx, mesh, build_options, mem)
                 mem.close()
-            tree.report.upload_seconds += upload
-            return BVH(mesh, tree)
+            return BVH(mesh, _with_times(tree, upload))
         return _build_lbvh(ctx, mesh, upload, build_options, collapse_options)
 
 
@@ -232,11 +226,26 @@ def build_parts(vertices: Any, faces: Any = None, part_triangles: int = 1 << 24,
                  face_ids=[p.astype(np.int32) for p in parts])
 
 
+def _with_times(tree: Tree, upload: float, traced: float | None = None) -> Tree:
+    """``tree`` with a report of its own: the builder's figures, plus this call's
+    mesh upload and, for an SAH build from rays not traced yet, the ``traced``
+    seconds of their trace (a phase of the build). The builder's report is left as
+    it made it."""
+    rep = tree.report
+    phases = dict(rep.phase_seconds)
+    wall = rep.wall_seconds
+    if traced is not None:
+        phases["trace ray sample"] = traced
+        wall += traced
+    return dataclasses.replace(tree, report=dataclasses.replace(
+        rep, upload_seconds=rep.upload_seconds + upload, wall_seconds=wall,
+        phase_seconds=phases))
+
+
 def _build_lbvh(ctx: dev.Context, mesh: Mesh, upload: float, options: LBVHOptions,
                 collapse_options: CollapseOptions | None) -> BVH:
     with ctx.memory.scope() as mem:   # every buffer of the build, the collapse's too
-        tree = pipeline.build_tree(ctx, mesh, options, mem)
-        tree.report.upload_seconds = upload
+        tree = _with_times(pipeline.build_tree(ctx, mesh, options, mem), upload)
         if collapse_options is not None:
             built = tree
             tree = collapse(built, collapse_options, mem)
