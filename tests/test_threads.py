@@ -64,6 +64,9 @@ JOBS = {
     "build treelets": lambda: tree(lbvh.build(sv, sf, treelet_rounds=1)),
     "build small treelets": lambda: tree(lbvh.build(sv, sf, treelet_rounds=1, treelet_leaves=5)),
     "build sah": lambda: tree(lbvh.build(sv[:600], sf[:200], builder="sah")),
+    "build ploc": lambda: tree(lbvh.build(sv, sf, builder="ploc")),
+    "intersect options": lambda: digest(shared.intersect(
+        o, d, options=lbvh.QueryOptions(invalid_rays="miss", batch_size=512)).t),
     "build sah rays": lambda: tree(lbvh.build(sv[:600], sf[:200], builder="sah",
                                               rays=(o[:300], d[:300]))),
     "intersect": lambda: digest(*(lambda h: (h.t, h.prim, h.u, h.v))(shared.intersect(o, d))),
@@ -72,7 +75,8 @@ JOBS = {
     "occluded": lambda: digest(shared.occluded(o, d, tmax=0.5)),
     "refit": lambda: (lambda b: tree(b) + digest(b.intersect(o * 2, d * 2).t))(
         lbvh.build(v, f).refit(v * 2)),
-    "views": lambda: (lambda b: digest(b.nodes["lower"], b.nodes["upper"], children_of(b.nodes), is_leaf(b.nodes)))(lbvh.build(v, f)),
+    "views": lambda: (lambda b: digest(b.nodes["lower"], b.nodes["upper"], children_of(b.nodes),
+                                       is_leaf(b.nodes)))(lbvh.build(v, f)),
     "render": lambda: digest(lbvh.render(shared, camera, "normals").image),
     "render ao": lambda: digest(lbvh.render(shared, camera, "ao", ao_samples=2).image),
     "closest points": lambda: digest(*(lambda c: (c.distance, c.prim, c.u, c.v))(
