@@ -187,7 +187,6 @@ def test_load_scene_takes_a_shipped_name_and_a_file_of_that_name_wins(tmp_path, 
 
 
 def test_the_shipped_views_are_the_bench_cameras():
-    import lbvh.data
     from lbvh.camera import load_views, view_camera
 
     assert not (REPO / "bench" / "cameras.json").exists()   # one set of views: the shipped one

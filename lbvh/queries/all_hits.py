@@ -125,10 +125,6 @@ def _check_max_hits(max_hits: Any) -> int | None:
     return int(max_hits)
 
 
-def _check_batch(batch_size: Any) -> int:
-    return check_positive("batch_size", batch_size)
-
-
 def _rays(origins: Any, directions: Any, tmin: Any, tmax: Any, invalid_rays: str) -> Rays:
     check_invalid_rays(invalid_rays)
     # rays in pyopencl arrays are read back: this query's answer is read back anyway
@@ -259,7 +255,7 @@ def segment_work(target: QueryTarget, origins: Any, directions: Any, tmin: Any =
     this tree must do for the ray, whatever its order: what the ray-sampled cost
     (:func:`lbvh.metrics.quality.ray_sampled_cost`) weighs."""
     target = query_target(target)   # a BVH gives its query data
-    batch = _check_batch(batch_size)
+    batch = check_positive("batch_size", batch_size)
     rays = _rays(origins, directions, tmin, tmax, "raise")
     work = np.zeros((len(rays), 4), np.int32)
     flags = _run(target, rays, batch, None, work)[1]
